@@ -1,0 +1,28 @@
+# Two entry points for a fresh machine: `make demo` and `make test`. Both install what they need.
+PY ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed
+
+.PHONY: install demo test proto bench clean
+
+$(STAMP): pyproject.toml
+	$(PY) -m venv $(VENV)
+	$(BIN)/pip install -q --upgrade pip
+	$(BIN)/pip install -q -e '.[test]'
+	touch $(STAMP)
+
+install: $(STAMP)
+	@bash deploy/install-system-deps.sh
+
+proto: $(STAMP)
+	$(BIN)/python proto/gen.py
+
+test: install
+	MUJOCO_GL=$${MUJOCO_GL:-egl} $(BIN)/python -m pytest $(PYTEST_ARGS)
+
+demo: install
+	MUJOCO_GL=$${MUJOCO_GL:-egl} bash deploy/demo.sh
+
+clean:
+	rm -rf $(VENV) .pytest_cache

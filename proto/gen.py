@@ -1,0 +1,39 @@
+"""Regenerate services/pb/*_pb2.py from proto/services/pb/*.proto (run: python proto/gen.py).
+
+The proto path mirrors the generated module path, so protoc writes imports such as
+``from services.pb import common_pb2`` that resolve from the repository root.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+from grpc_tools import protoc
+import grpc_tools
+
+ROOT = Path(__file__).resolve().parent.parent
+PROTO = ROOT / "proto"
+
+
+def generate(out_dir: Path = ROOT) -> list[Path]:
+    sources = sorted((PROTO / "services" / "pb").glob("*.proto"))
+    include = Path(grpc_tools.__file__).parent / "_proto"
+    args = [
+        "grpc_tools.protoc",
+        f"-I{PROTO}",
+        f"-I{include}",
+        f"--python_out={out_dir}",
+        f"--pyi_out={out_dir}",
+        f"--grpc_python_out={out_dir}",
+        *[str(s) for s in sources],
+    ]
+    if protoc.main(args) != 0:
+        raise SystemExit("protoc failed")
+    return sources
+
+
+if __name__ == "__main__":
+    out = Path(sys.argv[1]) if len(sys.argv) > 1 else ROOT
+    for src in generate(out):
+        print(f"generated from {src.relative_to(ROOT)}")

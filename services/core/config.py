@@ -1,0 +1,125 @@
+"""Configuration: frozen pydantic models, loaded with one precedence rule.
+
+defaults (the model) < YAML file < environment (VIEWSCALE_SECTION__FIELD=value) < CLI overrides
+(``--set section.field=value``). Values from env and CLI are parsed as YAML scalars/flow values,
+so ``--set bus.connect=[tcp/127.0.0.1:7447]`` and ``VIEWSCALE_CONTROL_HZ=20`` both work.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any, Iterable, Mapping, TypeVar
+
+import yaml
+from pydantic import BaseModel, ConfigDict, ValidationError
+
+ENV_PREFIX = "VIEWSCALE_"
+
+M = TypeVar("M", bound=BaseModel)
+
+
+class Frozen(BaseModel):
+    """Base for every config model: immutable, unknown keys are an error (catches typos)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+
+class ConfigError(ValueError):
+    """A configuration could not be loaded; the message names the source and the field."""
+
+
+def _deep_merge(base: dict[str, Any], top: Mapping[str, Any]) -> dict[str, Any]:
+    out = dict(base)
+    for key, value in top.items():
+        if isinstance(value, Mapping) and isinstance(out.get(key), Mapping):
+            out[key] = _deep_merge(dict(out[key]), value)
+        else:
+            out[key] = value
+    return out
+
+
+def _nest(path: list[str], value: Any) -> dict[str, Any]:
+    node: Any = value
+    for part in reversed(path):
+        node = {part: node}
+    return node
+
+
+def _parse_value(text: str) -> Any:
+    try:
+        return yaml.safe_load(text)
+    except yaml.YAMLError:
+        return text
+
+
+def parse_overrides(items: Iterable[str]) -> dict[str, Any]:
+    """``["a.b=1", "c=[x, y]"]`` -> ``{"a": {"b": 1}, "c": ["x", "y"]}``."""
+    merged: dict[str, Any] = {}
+    for item in items:
+        if "=" not in item:
+            raise ConfigError(f"override {item!r} must look like key.path=value")
+        key, _, raw = item.partition("=")
+        path = [p for p in key.strip().split(".") if p]
+        if not path:
+            raise ConfigError(f"override {item!r} has an empty key")
+        merged = _deep_merge(merged, _nest(path, _parse_value(raw)))
+    return merged
+
+
+def env_overrides(environ: Mapping[str, str], prefix: str = ENV_PREFIX) -> dict[str, Any]:
+    merged: dict[str, Any] = {}
+    for name, raw in environ.items():
+        if not name.startswith(prefix) or name == prefix + "CONFIG":
+            continue
+        path = [p.lower() for p in name[len(prefix):].split("__") if p]
+        if path:
+            merged = _deep_merge(merged, _nest(path, _parse_value(raw)))
+    return merged
+
+
+def read_yaml(path: str | Path) -> dict[str, Any]:
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"config file {path} does not exist")
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"config file {path} is not valid YAML: {exc}") from exc
+    if not isinstance(data, dict):
+        raise ConfigError(f"config file {path} must hold a mapping at the top level")
+    return data
+
+
+def load_config(
+    model: type[M],
+    yaml_path: str | Path | None = None,
+    overrides: Iterable[str] = (),
+    environ: Mapping[str, str] | None = None,
+    section: str | None = None,
+) -> M:
+    """Build ``model`` from defaults < YAML < env < CLI overrides.
+
+    ``section`` picks one top-level key of a shared YAML file (deploy/sim.yaml holds every
+    service's section); env and CLI overrides are relative to that section. Environment keys
+    only apply to fields the model has, so one environment can carry several services' settings.
+    """
+    environ = os.environ if environ is None else environ
+    data: dict[str, Any] = {}
+    yaml_path = yaml_path or environ.get(ENV_PREFIX + "CONFIG")
+    if yaml_path:
+        raw = read_yaml(yaml_path)
+        if section is not None:
+            raw = raw.get(section, {}) or {}
+            if not isinstance(raw, dict):
+                raise ConfigError(f"section {section!r} of {yaml_path} must be a mapping")
+        data = _deep_merge(data, raw)
+    env = env_overrides(environ)
+    env = {k: v for k, v in env.items() if k in model.model_fields}
+    data = _deep_merge(data, env)
+    data = _deep_merge(data, parse_overrides(overrides))
+    try:
+        return model.model_validate(data)
+    except ValidationError as exc:
+        src = f" (from {yaml_path})" if yaml_path else ""
+        raise ConfigError(f"invalid {model.__name__} config{src}:\n{exc}") from exc
