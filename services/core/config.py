@@ -101,7 +101,8 @@ def load_config(
     """Build ``model`` from defaults < YAML < env < CLI overrides.
 
     ``section`` picks one top-level key of a shared YAML file (deploy/sim.yaml holds every
-    service's section); env and CLI overrides are relative to that section. Environment keys
+    service's section, plus shared top-level keys such as ``bus`` that any model with that field
+    takes); env and CLI overrides are relative to that section. Environment keys
     only apply to fields the model has, so one environment can carry several services' settings.
     """
     environ = os.environ if environ is None else environ
@@ -110,9 +111,12 @@ def load_config(
     if yaml_path:
         raw = read_yaml(yaml_path)
         if section is not None:
-            raw = raw.get(section, {}) or {}
-            if not isinstance(raw, dict):
+            body = raw.get(section, {}) or {}
+            if not isinstance(body, dict):
                 raise ConfigError(f"section {section!r} of {yaml_path} must be a mapping")
+            # Top-level keys the model also has (``bus``) are shared by every service's section.
+            shared = {k: v for k, v in raw.items() if k in model.model_fields and k != section}
+            raw = _deep_merge(shared, body)
         data = _deep_merge(data, raw)
     env = env_overrides(environ)
     env = {k: v for k, v in env.items() if k in model.model_fields}
