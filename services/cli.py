@@ -1,0 +1,102 @@
+"""``viewscale``: the command line of the whole system.
+
+    viewscale collect --task lift --episodes 10 --rig five15 --out data/raw
+    viewscale dataset build --raw data/raw --views F,FL,FR,FU,FD --space camera --out data/ds
+    viewscale dataset info data/ds
+    viewscale train --data data/ds --preset tiny --steps 2000 --out runs/lift-five15-camera
+    viewscale router --listen tcp/0.0.0.0:7447
+
+Errors a user can cause print one ``error:`` line and exit with code 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import os
+import sys
+from pathlib import Path
+
+
+def _collect(args: argparse.Namespace) -> int:
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    from services.collect import CollectError, collect
+    from services.core.config import ConfigError
+    from services.core.rig import load_rig
+
+    try:
+        load_rig(args.rig)  # fail fast on a typo, before starting anything
+        if args.task not in ("lift", "can", "square"):
+            raise ConfigError(f"unknown task {args.task!r}; tasks: lift, can, square")
+        extra: dict[str, list[str]] = {}
+        for item in args.set:
+            service, _, rest = item.partition(".")
+            if not rest:
+                raise ConfigError(f"--set {item!r} must name a service: sim.width=224, recorder.queue_size=256")
+            extra.setdefault(service, []).append(rest)
+        result = collect(args.task, args.episodes, args.rig, Path(args.out), config=args.config, seed=args.seed,
+                         size=args.size, realtime=not args.fast, control_hz=args.hz, max_ticks=args.max_ticks,
+                         extra=extra)
+    except (CollectError, ConfigError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    return 0 if len(result.recorded) >= args.episodes else 1
+
+
+def _router(args: argparse.Namespace) -> int:
+    from services.router.__main__ import main as router_main
+
+    return router_main(sum((["--listen", e] for e in args.listen or []), []))
+
+
+def _add_optional(sub, module: str, register: str) -> None:
+    """Subcommands that live with their feature (dataset, train) register themselves."""
+    try:
+        mod = importlib.import_module(module)
+    except ImportError as exc:
+        if exc.name and (exc.name == module or module.startswith(exc.name)):
+            return  # feature not installed in this build
+        raise
+    getattr(mod, register)(sub)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="viewscale", description="Scale camera views instead of demonstrations.")
+    parser.add_argument("--log-level", default="WARNING", help="logging level (default WARNING)")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    p = sub.add_parser("collect", help="record scripted-expert episodes in sim through the real services")
+    p.add_argument("--task", default="lift", help="lift, can or square (default lift)")
+    p.add_argument("--episodes", type=int, default=10, help="successful episodes to record (default 10)")
+    p.add_argument("--rig", default="five15", help="camera rig preset or YAML (default five15)")
+    p.add_argument("--out", default="data/raw", help="directory for the episode MCAP files (default data/raw)")
+    p.add_argument("--seed", type=int, default=0, help="first seed; failed attempts move to the next (default 0)")
+    p.add_argument("--size", type=int, default=None, help="square frame size in px (default from config: 84)")
+    p.add_argument("--hz", type=float, default=20.0, help="control rate (default 20)")
+    p.add_argument("--max-ticks", type=int, default=None, help="per-episode tick limit (default per task)")
+    p.add_argument("--fast", action="store_true", help="lockstep instead of real time: as fast as the machine goes")
+    p.add_argument("--config", default=None, help="YAML with per-service sections (e.g. deploy/sim.yaml)")
+    p.add_argument("--set", action="append", default=[], metavar="SERVICE.KEY=VALUE",
+                   help="override a service's config field, e.g. sim.jpeg_quality=80 (repeatable)")
+    p.set_defaults(func=_collect)
+
+    p = sub.add_parser("router", help="run a Zenoh router for a multi-host or compose session")
+    p.add_argument("--listen", action="append", help="endpoint, repeatable (default tcp/0.0.0.0:7447)")
+    p.set_defaults(func=_router)
+
+    _add_optional(sub, "services.trainer.dataset_cli", "add_dataset_commands")
+    _add_optional(sub, "services.trainer.train_cli", "add_train_command")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=getattr(logging, str(args.log_level).upper(), logging.WARNING),
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    return int(args.func(args) or 0)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

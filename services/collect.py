@@ -1,0 +1,165 @@
+"""``viewscale collect``: a whole sim collection session on this machine, one process per service.
+
+Starts a Zenoh router on a free loopback port, then the sim, teleop and recorder services as
+subprocesses connected to it (exactly what `docker compose up` runs, minus the containers),
+waits for each one's ``ready`` line, runs the session in this process with progress per episode,
+and stops everything with SIGTERM when the episodes are recorded. Service logs go to
+``<out>/logs/<service>.log``.
+"""
+
+from __future__ import annotations
+
+import os
+import selectors
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from services.core.bus import Bus, BusConfig, free_tcp_port, router
+from services.session.config import SessionConfig
+from services.session.session import Session, SessionError, SessionResult, summary
+
+
+class CollectError(RuntimeError):
+    pass
+
+
+@dataclass
+class Child:
+    name: str
+    proc: subprocess.Popen
+    log_path: Path
+
+    def tail(self, lines: int = 20) -> str:
+        try:
+            return "\n".join(self.log_path.read_text(errors="replace").splitlines()[-lines:])
+        except OSError:
+            return "(no log)"
+
+
+@dataclass
+class LocalStack:
+    """Service subprocesses on loopback around one router; a context manager."""
+
+    out_dir: Path
+    config: str | None
+    overrides: dict[str, list[str]] = field(default_factory=dict)  # service -> --set items
+    ready_timeout_s: float = 120.0
+    children: list[Child] = field(default_factory=list)
+
+    def __post_init__(self):
+        self.port = free_tcp_port()
+        self.endpoint = f"tcp/127.0.0.1:{self.port}"
+        self.log_dir = self.out_dir / "logs"
+
+    def bus_config(self) -> BusConfig:
+        return BusConfig(mode="client", connect=[self.endpoint])
+
+    def __enter__(self) -> "LocalStack":
+        self.log_dir.mkdir(parents=True, exist_ok=True)
+        self._router = router([self.endpoint])
+        try:
+            for name, module in (("recorder", "services.recorder"), ("sim", "sim"), ("teleop", "services.teleop")):
+                self._start(name, module)
+            self._wait_ready()
+        except BaseException:
+            self.__exit__()
+            raise
+        return self
+
+    def _start(self, name: str, module: str) -> None:
+        cmd = [sys.executable, "-m", module]
+        if self.config:
+            cmd += ["--config", self.config]
+        for item in [f"bus.mode=client", f"bus.connect=[{self.endpoint}]", *self.overrides.get(name, [])]:
+            cmd += ["--set", item]
+        log_path = self.log_dir / f"{name}.log"
+        env = dict(os.environ, MUJOCO_GL=os.environ.get("MUJOCO_GL", "egl"), PYTHONUNBUFFERED="1")
+        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=open(log_path, "w"), env=env, text=True)
+        self.children.append(Child(name, proc, log_path))
+
+    def _wait_ready(self) -> None:
+        pending = {c.proc.stdout.fileno(): c for c in self.children}
+        sel = selectors.DefaultSelector()
+        for child in self.children:
+            sel.register(child.proc.stdout, selectors.EVENT_READ, child)
+        deadline = time.monotonic() + self.ready_timeout_s
+        while pending:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                names = ", ".join(c.name for c in pending.values())
+                raise CollectError(f"not ready after {self.ready_timeout_s:.0f}s: {names}")
+            for key, _ in sel.select(timeout=min(remaining, 1.0)):
+                child: Child = key.data
+                line = child.proc.stdout.readline()
+                if not line:  # EOF: the process died before it was ready
+                    child.proc.wait(timeout=5)
+                    raise CollectError(f"{child.name} exited with code {child.proc.returncode} before it was "
+                                       f"ready; last log lines:\n{child.tail()}")
+                if line.startswith(f"ready {child.name}"):
+                    sel.unregister(child.proc.stdout)
+                    pending.pop(child.proc.stdout.fileno(), None)
+        sel.close()
+
+    def check_alive(self) -> None:
+        for child in self.children:
+            if child.proc.poll() is not None:
+                raise CollectError(f"{child.name} exited with code {child.proc.returncode}; "
+                                   f"last log lines:\n{child.tail()}")
+
+    def __exit__(self, *exc) -> None:
+        for child in self.children:
+            if child.proc.poll() is None:
+                child.proc.send_signal(signal.SIGTERM)
+        for child in self.children:
+            try:
+                child.proc.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                child.proc.kill()
+                child.proc.wait()
+            if child.proc.stdout:
+                child.proc.stdout.close()
+        self.children.clear()
+        if getattr(self, "_router", None) is not None:
+            self._router.close()
+            self._router = None
+
+
+def collect(
+    task: str,
+    episodes: int,
+    rig: str,
+    out: Path,
+    config: str | None = None,
+    seed: int = 0,
+    size: int | None = None,
+    realtime: bool = True,
+    control_hz: float = 20.0,
+    max_ticks: int | None = None,
+    extra: dict[str, list[str]] | None = None,
+    progress=print,
+) -> SessionResult:
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    sim = [f"rig={rig}", f"task={task}", f"realtime={str(realtime).lower()}", f"control_hz={control_hz}"]
+    if size:
+        sim += [f"width={size}", f"height={size}"]
+    overrides = {"sim": sim, "recorder": [f"out_dir={out}"], "teleop": []}
+    for name, items in (extra or {}).items():
+        overrides.setdefault(name, []).extend(items)
+    progress(f"starting sim ({task}, rig {rig}), teleop (scripted) and recorder -> {out}")
+    with LocalStack(out, config, overrides) as stack:
+        progress(f"services ready on {stack.endpoint}; logs in {stack.log_dir}")
+        cfg = SessionConfig(bus=stack.bus_config(), task=task, rig=rig, episodes=episodes, seed=seed,
+                            control_hz=control_hz, max_ticks=max_ticks)
+        with Bus(cfg.bus) as bus:
+            try:
+                result = Session(cfg, bus, progress=progress).run()
+            except (SessionError, TimeoutError) as exc:
+                stack.check_alive()  # a crashed child explains more than the symptom
+                raise CollectError(str(exc)) from exc
+    progress(summary(result))
+    return result

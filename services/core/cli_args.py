@@ -1,0 +1,34 @@
+"""The thin ``__main__`` every service shares: parse --config/--set, configure logging, run."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from typing import Callable, TypeVar
+
+from services.core.config import ConfigError, load_config
+from services.core.runtime import configure_logging
+
+C = TypeVar("C")
+
+
+def service_main(
+    name: str, model: type[C], main: Callable[[C], int], module: str | None = None, argv: list[str] | None = None
+) -> int:
+    """``name`` is the service and its YAML section; ``module`` what ``python -m`` runs."""
+    parser = argparse.ArgumentParser(
+        prog=f"python -m {module or 'services.' + name}",
+        description=f"Run the {name} service. Settings: defaults < --config YAML section '{name}' "
+        "< VIEWSCALE_<FIELD>=value < --set field=value.",
+    )
+    parser.add_argument("--config", help="YAML file with a section per service (e.g. deploy/sim.yaml)")
+    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                        help="override a config field, dotted for nested ones (repeatable)")
+    args = parser.parse_args(argv)
+    try:
+        cfg = load_config(model, args.config, args.overrides, section=name)
+    except ConfigError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    configure_logging(getattr(cfg, "log_level", "INFO"))
+    return main(cfg)

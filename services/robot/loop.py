@@ -1,0 +1,170 @@
+"""The control loop every robot source runs, real or simulated.
+
+One tick k:
+  1. observe: read the driver; observers publish what belongs to tick k (camera frames, task
+     state), then RobotState(tick=k) goes out last, so a teleop that reacts to the state finds
+     the tick's other messages already sent;
+  2. wait for the EefCommand answering tick k, until a deadline (a fraction of the period in
+     real time; ``command_timeout_s`` in lockstep);
+  3. apply it -- or hold still with the last gripper target if none came (flagged ``stale``) --
+     and publish AppliedAction(tick=k): the action that really ran between state k and k+1.
+So an episode always has exactly one applied action per observation, which is what
+demonstrations are made of.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import Counter
+from typing import Callable
+
+import numpy as np
+
+from services.core import topics
+from services.core.bus import Bus, Received
+from services.core.clock import Rate, now_ns
+from services.pb.common_pb2 import Header
+from services.pb.control_pb2 import AppliedAction, EefAction, EefCommand
+from services.pb.sensors_pb2 import RobotState
+from services.robot.backends.base import EefDelta, RobotDriver
+
+log = logging.getLogger(__name__)
+
+Observer = Callable[[int, int], None]  # (tick, capture stamp_ns)
+
+
+def state_msg(snapshot, tick: int, stamp_ns: int, seq: int, episode_id: str) -> RobotState:
+    return RobotState(
+        header=Header(stamp_ns=stamp_ns, seq=seq, frame_id=topics.WORLD_FRAME),
+        tick=tick,
+        eef_pos=[float(v) for v in snapshot.eef_pos],
+        eef_quat_wxyz=[float(v) for v in snapshot.eef_quat_wxyz],
+        joint_pos=[float(v) for v in snapshot.joint_pos],
+        joint_vel=[float(v) for v in snapshot.joint_vel],
+        gripper=float(snapshot.gripper),
+        episode_id=episode_id,
+    )
+
+
+def action_from_msg(action: EefAction) -> EefDelta:
+    """Validate and convert a wire action; raises ValueError for the wrong shape or NaN."""
+    dp = np.asarray(action.dp, dtype=np.float64)
+    drot = np.asarray(action.drot, dtype=np.float64)
+    if dp.shape != (3,) or drot.shape != (3,):
+        raise ValueError(f"action needs dp and drot of 3 values, got {dp.shape} and {drot.shape}")
+    if not (np.all(np.isfinite(dp)) and np.all(np.isfinite(drot)) and np.isfinite(action.gripper)):
+        raise ValueError("action has non-finite values")
+    return EefDelta(dp, drot, float(np.clip(action.gripper, 0.0, 1.0)))
+
+
+def action_msg(delta: EefDelta) -> EefAction:
+    return EefAction(dp=[float(v) for v in delta.dp], drot=[float(v) for v in delta.drot], gripper=delta.gripper)
+
+
+class ControlLoop:
+    def __init__(
+        self,
+        bus: Bus,
+        driver: RobotDriver,
+        control_hz: float,
+        realtime: bool = True,
+        command_timeout_s: float = 0.5,
+        command_wait_fraction: float = 0.8,
+        observers: list[Observer] | None = None,
+    ):
+        self.bus = bus
+        self.driver = driver
+        self.control_hz = control_hz
+        self.realtime = realtime
+        self.command_timeout_s = command_timeout_s
+        self.command_wait_fraction = command_wait_fraction
+        self.observers = list(observers or [])
+        self.tick = 0
+        self.episode_id = ""
+        self.stale_ticks = 0
+        self.rejected = Counter()  # reason -> count of commands we could not use
+        self._gripper = 0.0
+        self._seq = 0
+        self._cv = threading.Condition()
+        self._latest: EefCommand | None = None
+        self._state_pub = bus.publisher(topics.ROBOT_STATE)
+        self._applied_pub = bus.publisher(topics.APPLIED_ACTION)
+        bus.subscribe(topics.COMMAND, self._on_command, on_error=self._on_malformed)
+
+    # -- commands (zenoh thread) --------------------------------------------------------
+    def _on_command(self, msg: EefCommand, _rx: Received) -> None:
+        with self._cv:
+            self._latest = msg
+            self._cv.notify_all()
+
+    def _on_malformed(self, rx: Received, exc: Exception) -> None:
+        self.rejected["malformed"] += 1
+        log.warning("malformed payload on %s (%d bytes): %s", rx.key, len(rx.payload), exc)
+
+    def _wait_command(self, tick: int, deadline: float) -> EefCommand | None:
+        with self._cv:
+            while True:
+                if self._latest is not None and self._latest.tick == tick:
+                    return self._latest
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    return None
+                self._cv.wait(remaining)
+
+    # -- one tick -----------------------------------------------------------------------
+    def begin_episode(self, episode_id: str) -> None:
+        self.tick = 0
+        self.episode_id = episode_id
+        self.stale_ticks = 0
+        self._gripper = 0.0
+        with self._cv:
+            self._latest = None
+
+    def observe(self) -> float:
+        """Publish tick's observation; returns its monotonic start time."""
+        t0 = time.monotonic()
+        stamp = now_ns()
+        snapshot = self.driver.read()
+        for observer in self.observers:
+            observer(self.tick, stamp)
+        self._seq += 1
+        self._state_pub.put(state_msg(snapshot, self.tick, stamp, self._seq, self.episode_id))
+        return t0
+
+    def act(self, t0: float) -> None:
+        """Wait for the tick's command, execute it (or hold), publish what ran."""
+        wait = self.command_wait_fraction / self.control_hz if self.realtime else self.command_timeout_s
+        cmd = self._wait_command(self.tick, t0 + wait)
+        delta = None
+        if cmd is not None:
+            try:
+                delta = action_from_msg(cmd.action)
+            except ValueError as exc:
+                self.rejected["invalid"] += 1
+                log.warning("rejected command for tick %d: %s", self.tick, exc)
+        stale = delta is None
+        if stale:
+            self.stale_ticks += 1
+            delta = EefDelta.hold(self._gripper)
+        self._gripper = delta.gripper
+        self.driver.apply(delta)
+        self._applied_pub.put(
+            AppliedAction(
+                header=Header(stamp_ns=now_ns(), seq=self._seq, frame_id=topics.WORLD_FRAME),
+                tick=self.tick,
+                action=action_msg(delta),
+                stale=stale,
+            )
+        )
+        self.tick += 1
+
+    def run(self, stop: threading.Event) -> None:
+        """Tick from now until ``stop`` (the standalone robot service's loop)."""
+        rate = Rate(self.control_hz)
+        while not stop.is_set():
+            self.act(self.observe())
+            if self.realtime:
+                rate.sleep()
+        log.info("control loop stopped at tick %d (%d stale ticks)", self.tick, self.stale_ticks)

@@ -1,0 +1,61 @@
+"""The robot service: a RobotDriver behind the control loop, ticking from start-up.
+
+On hardware this is the process that owns the arm. With ``driver: sim`` it runs a MuJoCo arm
+without cameras (useful to exercise a teleop source); full sim collection sessions use the sim
+service instead, which runs the same loop with cameras and episode control.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+
+from services.core.bus import Bus
+from services.robot.backends.base import RobotDriver, load_driver_class
+from services.robot.config import RobotConfig
+from services.robot.loop import ControlLoop
+
+log = logging.getLogger(__name__)
+
+
+def make_driver(cfg: RobotConfig) -> RobotDriver:
+    if cfg.driver == "sim":
+        from services.core.rig import load_rig
+        from services.robot.backends.sim import SimRobotDriver
+        from sim.world import SimWorld
+
+        world = SimWorld(cfg.task, load_rig("front"), control_hz=cfg.control_hz)
+        world.reset(cfg.seed)
+        return SimRobotDriver(world)
+    return load_driver_class(cfg.driver)(**cfg.driver_args)
+
+
+class RobotService:
+    def __init__(self, cfg: RobotConfig, bus: Bus, driver: RobotDriver):
+        self.cfg = cfg
+        self.bus = bus
+        self.driver = driver
+        self.loop = ControlLoop(
+            bus, driver, cfg.control_hz, cfg.realtime, cfg.command_timeout_s, cfg.command_wait_fraction
+        )
+
+    def __enter__(self) -> "RobotService":
+        self.bus.announce("robot")
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.driver.close()
+
+    def run(self, stop: threading.Event) -> None:
+        self.loop.run(stop)
+
+
+def main(cfg: RobotConfig) -> int:
+    stop = threading.Event()
+    from services.core.runtime import announce_ready, stop_on_signals
+
+    stop_on_signals(stop)
+    with Bus(cfg.bus) as bus, RobotService(cfg, bus, make_driver(cfg)) as service:
+        announce_ready("robot", cfg.driver)
+        service.run(stop)
+    return 0

@@ -1,0 +1,26 @@
+from __future__ import annotations
+
+from pydantic import Field
+
+from services.core.bus import BusConfig
+from services.core.config import Frozen
+
+DEFAULT_MAX_TICKS = {"lift": 200, "can": 400, "square": 500}
+
+
+class SessionConfig(Frozen):
+    bus: BusConfig = BusConfig()  # how to reach the session's Zenoh network
+    task: str = "lift"  # task of every episode
+    rig: str = "five15"  # rig name recorded with each episode (the sim's rig)
+    episodes: int = Field(10, ge=1)  # successful episodes to record
+    seed: int = Field(0, ge=0)  # first seed; each attempt takes the next one
+    max_attempts: int | None = Field(None, ge=1)  # give up after this many attempts (default 3 x episodes)
+    max_ticks: int | None = Field(None, ge=1)  # per-episode tick limit (default per task)
+    settle_ticks: int = Field(3, ge=0)  # ticks still recorded after success, so demos end at rest
+    control_hz: float = Field(20.0, gt=0)  # the sim's control rate (recorded; used for time limits)
+    services: list[str] = Field(default_factory=lambda: ["sim", "teleop", "recorder"])  # must be alive
+    wait_services_s: float = Field(120.0, gt=0)  # how long to wait for them at start-up
+    log_level: str = "INFO"  # logging level of the process
+
+    def tick_limit(self) -> int:
+        return self.max_ticks or DEFAULT_MAX_TICKS.get(self.task, 400)

@@ -1,0 +1,205 @@
+"""The collection session: drives sim, teleop and recorder through N successful episodes.
+
+Per attempt: sim RESET (task, seed) -> recorder START -> sim RUN -> watch the task state until
+success has held for ``settle_ticks`` or the tick limit -> sim PAUSE (the sim completes its tick,
+so observations == applied actions) -> recorder STOP with the tick count on success, DISCARD on
+failure (the failure is reported, and the next seed is tried). Everything goes over Zenoh
+queries; a service that disappears mid-episode stops the session with a clear error.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from typing import Callable
+
+from services.core import topics
+from services.core.bus import Bus, Received
+from services.pb.episode_pb2 import (
+    EpisodeCommand, EpisodeMeta, EpisodeReply, EpisodeRequest, SimCommand, SimControlReply, SimControlRequest,
+)
+from services.pb.sensors_pb2 import TaskState
+from services.session.config import SessionConfig
+
+log = logging.getLogger(__name__)
+
+
+class SessionError(RuntimeError):
+    pass
+
+
+@dataclass
+class Attempt:
+    seed: int
+    episode_id: str
+    success: bool
+    ticks: int
+    seconds: float
+    meta: EpisodeMeta | None = None  # set for recorded (successful) episodes
+
+
+@dataclass
+class SessionResult:
+    attempts: list[Attempt] = field(default_factory=list)
+
+    @property
+    def recorded(self) -> list[Attempt]:
+        return [a for a in self.attempts if a.meta is not None]
+
+    @property
+    def failed(self) -> list[Attempt]:
+        return [a for a in self.attempts if not a.success]
+
+
+def describe(attempt: Attempt) -> str:
+    if attempt.meta is None:
+        return f"seed {attempt.seed}: expert failed after {attempt.ticks} ticks, discarded"
+    m = attempt.meta
+    drops = sum(m.drops.values())
+    flags = f" FLAGGED: {'; '.join(m.flags)}" if m.flags else ""
+    return (f"seed {attempt.seed}: success in {attempt.ticks} ticks ({attempt.seconds:.1f} s, "
+            f"{m.achieved_hz:.1f} Hz, {drops} drops) -> {m.path}{flags}")
+
+
+class Session:
+    def __init__(self, cfg: SessionConfig, bus: Bus, progress: Callable[[str], None] = print):
+        self.cfg = cfg
+        self.bus = bus
+        self.progress = progress
+        self._cv = threading.Condition()
+        self._episode = ""
+        self._tick = -1
+        self._success_since: int | None = None
+        self._lost: set[str] = set()
+        bus.subscribe(topics.TASK_STATE, self._on_task)
+        bus.watch_alive(self._on_alive)
+
+    # -- watching (zenoh threads) -------------------------------------------------------
+    def _on_task(self, msg: TaskState, _rx: Received) -> None:
+        with self._cv:
+            if msg.episode_id != self._episode:
+                return
+            self._tick = msg.tick
+            if msg.success:
+                if self._success_since is None:
+                    self._success_since = msg.tick
+            else:
+                self._success_since = None
+            self._cv.notify_all()
+
+    def _on_alive(self, service: str, alive: bool) -> None:
+        if service in self.cfg.services:
+            with self._cv:
+                (self._lost.discard if alive else self._lost.add)(service)
+                self._cv.notify_all()
+
+    # -- requests -----------------------------------------------------------------------
+    def _sim(self, command: SimCommand, **fields) -> SimControlReply:
+        raw = self.bus.query(topics.SIM_CONTROL, SimControlRequest(command=command, **fields).SerializeToString(), 20.0)
+        reply = SimControlReply.FromString(raw)
+        if not reply.ok:
+            raise SessionError(f"sim refused {SimCommand.Name(command)}: {reply.error}")
+        return reply
+
+    def _recorder(self, command: EpisodeCommand, **fields) -> EpisodeReply:
+        req = EpisodeRequest(command=command, **fields)
+        reply = EpisodeReply.FromString(self.bus.query(topics.EPISODE_CONTROL, req.SerializeToString(), 60.0))
+        if not reply.ok:
+            raise SessionError(f"recorder refused {EpisodeCommand.Name(command)}: {reply.error}")
+        return reply
+
+    # -- one episode --------------------------------------------------------------------
+    def _wait_done(self, limit: int) -> None:
+        """Until success held for settle_ticks, the tick limit, or a lost service."""
+        # Generous wall-clock bound: the loop may run slower than real time on a busy machine.
+        deadline = time.monotonic() + 30.0 + 5.0 * limit / self.cfg.control_hz
+        with self._cv:
+            while True:
+                if self._lost:
+                    raise SessionError(f"service(s) lost mid-episode: {', '.join(sorted(self._lost))}")
+                if self._success_since is not None and self._tick - self._success_since >= self.cfg.settle_ticks:
+                    return
+                if self._tick + 1 >= limit:
+                    return
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    raise SessionError(f"episode made no progress: tick {self._tick} of {limit} "
+                                       f"after {30.0 + 5.0 * limit / self.cfg.control_hz:.0f}s")
+                self._cv.wait(min(remaining, 0.5))
+
+    def run_episode(self, seed: int) -> Attempt:
+        stamp = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%S")
+        episode_id = f"{self.cfg.task}-{self.cfg.rig}-s{seed:05d}-{stamp}"
+        with self._cv:
+            self._episode, self._tick, self._success_since = episode_id, -1, None
+        t0 = time.monotonic()
+        self._sim(SimCommand.SIM_COMMAND_RESET, task=self.cfg.task, seed=seed, episode_id=episode_id)
+        self._recorder(EpisodeCommand.EPISODE_COMMAND_START, episode_id=episode_id, task=self.cfg.task,
+                       seed=seed, rig=self.cfg.rig, control_hz=self.cfg.control_hz)
+        try:
+            self._sim(SimCommand.SIM_COMMAND_RUN)
+            self._wait_done(self.cfg.tick_limit())
+            paused = self._sim(SimCommand.SIM_COMMAND_PAUSE)
+        except BaseException:
+            # Whatever went wrong, do not leave a half episode that looks recorded.
+            try:
+                self._recorder(EpisodeCommand.EPISODE_COMMAND_DISCARD, episode_id=episode_id)
+            except Exception as exc:
+                log.warning("could not discard %s: %s", episode_id, exc)
+            raise
+        seconds = time.monotonic() - t0
+        attempt = Attempt(seed, episode_id, paused.success, int(paused.ticks), seconds)
+        if paused.success:
+            reply = self._recorder(EpisodeCommand.EPISODE_COMMAND_STOP, episode_id=episode_id,
+                                   success=True, ticks=paused.ticks)
+            attempt.meta = reply.meta
+        else:
+            self._recorder(EpisodeCommand.EPISODE_COMMAND_DISCARD, episode_id=episode_id)
+        return attempt
+
+    def run(self) -> SessionResult:
+        cfg = self.cfg
+        self.progress(f"waiting for services: {', '.join(cfg.services)}")
+        self.bus.wait_alive(cfg.services, timeout=cfg.wait_services_s)
+        result = SessionResult()
+        max_attempts = cfg.max_attempts or 3 * cfg.episodes
+        seed = cfg.seed
+        while len(result.recorded) < cfg.episodes:
+            if len(result.attempts) >= max_attempts:
+                raise SessionError(
+                    f"only {len(result.recorded)} of {cfg.episodes} episodes succeeded in {max_attempts} attempts "
+                    f"(failed seeds: {[a.seed for a in result.failed]})"
+                )
+            attempt = self.run_episode(seed)
+            result.attempts.append(attempt)
+            self.progress(f"[{len(result.recorded)}/{cfg.episodes}] {cfg.task} {describe(attempt)}")
+            seed += 1
+        return result
+
+
+def summary(result: SessionResult) -> str:
+    rec = result.recorded
+    flagged = [a for a in rec if a.meta.flags]
+    lines = [f"recorded {len(rec)} episodes in {len(result.attempts)} attempts"]
+    if result.failed:
+        lines.append(f"expert failures (discarded): seeds {', '.join(str(a.seed) for a in result.failed)}")
+    if rec:
+        hz = sum(a.meta.achieved_hz for a in rec) / len(rec)
+        lines.append(f"ticks per episode: {min(a.ticks for a in rec)}..{max(a.ticks for a in rec)}, "
+                     f"mean achieved rate {hz:.1f} Hz, drops {sum(sum(a.meta.drops.values()) for a in rec)}")
+    lines.append(f"flagged episodes: {len(flagged)}" + "".join(f"\n  {a.meta.path}: {'; '.join(a.meta.flags)}" for a in flagged))
+    return "\n".join(lines)
+
+
+def main(cfg: SessionConfig) -> int:
+    with Bus(cfg.bus) as bus:
+        try:
+            result = Session(cfg, bus).run()
+        except (SessionError, TimeoutError) as exc:
+            print(f"error: {exc}", flush=True)
+            return 1
+    print(summary(result), flush=True)
+    return 0

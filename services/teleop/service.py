@@ -1,0 +1,125 @@
+"""The teleop service: answers every RobotState tick with an EefCommand for the same tick.
+
+The zenoh callbacks only store the newest state (a teleop that falls behind skips to the
+present rather than answering old ticks) and the task states by tick; a worker thread does the
+thinking. Malformed payloads are counted and logged, never fatal.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import Counter, OrderedDict
+
+from services.core import topics
+from services.core.bus import Bus, Received
+from services.core.clock import now_ns
+from services.pb.common_pb2 import Header
+from services.pb.control_pb2 import EefCommand
+from services.pb.sensors_pb2 import RobotState, TaskState
+from services.robot.loop import action_msg
+from services.teleop.backends.base import TeleopSource
+from services.teleop.config import TeleopConfig
+
+log = logging.getLogger(__name__)
+
+
+def make_source(cfg: TeleopConfig) -> TeleopSource:
+    if cfg.source == "scripted":
+        from services.teleop.backends.scripted import ScriptedSource
+
+        return ScriptedSource()
+    raise ValueError(f"unknown teleop source {cfg.source!r}")
+
+
+class TeleopService:
+    def __init__(self, cfg: TeleopConfig, bus: Bus, source: TeleopSource):
+        self.cfg = cfg
+        self.bus = bus
+        self.source = source
+        self.malformed = Counter()
+        self.errors = 0
+        self.commands = 0
+        self._cv = threading.Condition()
+        self._state: RobotState | None = None
+        self._tasks: OrderedDict[tuple[str, int], TaskState] = OrderedDict()
+        self._episode: str | None = None
+        self._seq = 0
+        self._pub = bus.publisher(topics.COMMAND)
+        bus.subscribe(topics.ROBOT_STATE, self._on_state, on_error=self._on_malformed)
+        if source.needs_task_state:
+            bus.subscribe(topics.TASK_STATE, self._on_task, on_error=self._on_malformed)
+
+    def __enter__(self) -> "TeleopService":
+        self.bus.announce("teleop")
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.source.close()
+
+    def _on_malformed(self, rx: Received, exc: Exception) -> None:
+        self.malformed[rx.key] += 1
+        log.warning("malformed payload on %s (%d bytes): %s", rx.key, len(rx.payload), exc)
+
+    def _on_state(self, msg: RobotState, _rx: Received) -> None:
+        with self._cv:
+            self._state = msg
+            self._cv.notify_all()
+
+    def _on_task(self, msg: TaskState, _rx: Received) -> None:
+        with self._cv:
+            self._tasks[(msg.episode_id, msg.tick)] = msg
+            while len(self._tasks) > 64:
+                self._tasks.popitem(last=False)
+            self._cv.notify_all()
+
+    def _next(self, stop: threading.Event) -> tuple[RobotState, TaskState | None] | None:
+        with self._cv:
+            while self._state is None:
+                if stop.is_set():
+                    return None
+                self._cv.wait(0.1)
+            state, self._state = self._state, None
+            if not self.source.needs_task_state:
+                return state, None
+            key = (state.episode_id, state.tick)
+            deadline = time.monotonic() + self.cfg.task_state_wait_s
+            while key not in self._tasks and (remaining := deadline - time.monotonic()) > 0:
+                self._cv.wait(remaining)
+            return state, self._tasks.get(key)
+
+    def run(self, stop: threading.Event) -> None:
+        while not stop.is_set():
+            item = self._next(stop)
+            if item is None:
+                break
+            state, task = item
+            if state.episode_id != self._episode:
+                self._episode = state.episode_id
+                self.source.reset(task.task if task is not None else "")
+            try:
+                delta = self.source.act(state, task)
+            except Exception as exc:  # no command: the robot holds still and flags the tick stale
+                self.errors += 1
+                log.warning("teleop source failed at tick %d: %s", state.tick, exc)
+                continue
+            self._seq += 1
+            self._pub.put(EefCommand(
+                header=Header(stamp_ns=now_ns(), seq=self._seq, frame_id=topics.WORLD_FRAME),
+                tick=state.tick, action=action_msg(delta), source=self.cfg.source,
+            ))
+            self.commands += 1
+        log.info("teleop stopped after %d commands (%d errors, %d malformed)",
+                 self.commands, self.errors, sum(self.malformed.values()))
+
+
+def main(cfg: TeleopConfig) -> int:
+    from services.core.runtime import announce_ready, stop_on_signals
+
+    stop = threading.Event()
+    stop_on_signals(stop)
+    with Bus(cfg.bus) as bus, TeleopService(cfg, bus, make_source(cfg)) as service:
+        announce_ready("teleop", cfg.source)
+        service.run(stop)
+    return 0
