@@ -2,9 +2,11 @@
 
 A rig YAML (presets in ``deploy/rigs/``) gives a base view -- the front camera F, at
 ``distance`` from ``center``, seen from ``azimuth_deg`` (0 = from +x, facing the robot) and
-``elevation_deg`` above the table -- and each camera as a rotation of that view around the
-centre: ``yaw_deg`` > 0 moves the camera to its own left around the vertical axis, ``pitch_deg``
-> 0 moves it up. Every camera looks at the centre.
+``elevation_deg`` above the table, image-up as close to world +z as possible -- and each camera
+as a rigid rotation of that camera around the centre: ``pitch_deg`` > 0 moves it up about the
+base view's image-right axis, then ``yaw_deg`` > 0 moves it to its own left about the base
+view's image-up axis. Every camera looks at the centre, and FL is exactly 15 degrees from F.
+A camera may instead give an absolute ``azimuth_deg``/``elevation_deg`` (side and top views).
 
 Conventions (the ones published in foxglove ``CameraCalibration``/``FrameTransform``):
 - optical frame as OpenCV: x right, y down, z forward;
@@ -35,8 +37,10 @@ RIG_DIR = Path(__file__).resolve().parents[2] / "deploy" / "rigs"
 
 
 class CameraSpec(Frozen):
-    yaw_deg: float = 0.0  # rotation to the camera's left around the vertical axis through the centre
-    pitch_deg: float = 0.0  # rotation upward around the centre
+    yaw_deg: float = 0.0  # rotation to the camera's left about the base view's image-up axis through the centre
+    pitch_deg: float = 0.0  # rotation upward about the base view's image-right axis through the centre
+    azimuth_deg: float | None = None  # absolute placement instead of yaw/pitch: view azimuth (0 = from +x)
+    elevation_deg: float | None = None  # absolute placement instead of yaw/pitch: height angle (90 = top-down)
     distance: float | None = None  # metres from the centre; default: the rig's
     fovy_deg: float | None = None  # vertical field of view; default: the rig's
 
@@ -139,20 +143,38 @@ def look_at(position: np.ndarray, target: np.ndarray) -> np.ndarray:
     return np.stack([x, y, z], axis=1)
 
 
+def _orbit(center: np.ndarray, distance: float, azimuth_deg: float, elevation_deg: float) -> np.ndarray:
+    az, el = math.radians(azimuth_deg), math.radians(elevation_deg)
+    return center + distance * np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
+
+
 class Rig:
     def __init__(self, spec: RigSpec):
         self.spec = spec
         center = np.asarray(spec.center, dtype=np.float64)
+        base_pos = _orbit(center, spec.distance, spec.azimuth_deg, spec.elevation_deg)
+        base_R = look_at(base_pos, center)
+        up, right = -base_R[:, 1], base_R[:, 0]  # the base view's image-up and image-right axes
         self.cameras: dict[str, Camera] = {}
         for name, cam in spec.cameras.items():
-            # The camera moving to its left around the centre = the view azimuth decreasing.
-            az = math.radians(spec.azimuth_deg - cam.yaw_deg)
-            el = math.radians(spec.elevation_deg + cam.pitch_deg)
-            dist = cam.distance if cam.distance is not None else spec.distance
-            offset = dist * np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
-            position = center + offset
             fovy = cam.fovy_deg if cam.fovy_deg is not None else spec.fovy_deg
-            self.cameras[name] = Camera(name, position, look_at(position, center), fovy)
+            if cam.azimuth_deg is not None or cam.elevation_deg is not None:
+                position = _orbit(center, cam.distance or spec.distance,
+                                  spec.azimuth_deg if cam.azimuth_deg is None else cam.azimuth_deg,
+                                  spec.elevation_deg if cam.elevation_deg is None else cam.elevation_deg)
+                self.cameras[name] = Camera(name, position, look_at(position, center), fovy)
+                continue
+            # A rigid rotation of the base camera about axes through the centre: the camera
+            # keeps looking at the centre and the angle between it and F is exactly the one
+            # given. With OpenCV axes, +angle about image-up moves the camera right and
+            # +angle about image-right moves it down, hence the signs.
+            rot = Rotation.from_rotvec(-math.radians(cam.yaw_deg) * up) * Rotation.from_rotvec(
+                -math.radians(cam.pitch_deg) * right
+            )
+            offset = rot.apply(base_pos - center)
+            if cam.distance is not None:
+                offset *= cam.distance / spec.distance
+            self.cameras[name] = Camera(name, center + offset, rot.as_matrix() @ base_R, fovy)
 
     @property
     def name(self) -> str:

@@ -1,0 +1,80 @@
+"""The bus on a real Zenoh router on loopback."""
+
+import threading
+
+import pytest
+
+from services.core import topics
+from services.core.bus import Bus, BusConfig
+from services.pb.common_pb2 import Header
+from services.pb.sensors_pb2 import RobotState
+
+
+def test_publish_subscribe_decoded_in_order(make_bus):
+    a, b = make_bus(), make_bus()
+    got, bad = [], []
+    done = threading.Event()
+
+    def on_msg(msg, rx):
+        got.append((msg.tick, rx.key))
+        if len(got) == 200:
+            done.set()
+
+    b.subscribe(topics.ROBOT_STATE, on_msg, on_error=lambda rx, e: bad.append(rx.key))
+    b.announce("b")
+    a.wait_alive({"b"}, timeout=10)
+    pub = a.publisher(topics.ROBOT_STATE)
+    a.publisher(topics.ROBOT_STATE)  # a second publisher on the same key is harmless
+    raw = a.session.declare_publisher(a.key(topics.ROBOT_STATE.key))
+    raw.put(b"\xff\xff\xff")  # garbage on the topic goes to on_error, not to the callback
+    for tick in range(200):
+        pub.put(RobotState(header=Header(seq=tick), tick=tick))
+    assert done.wait(10), f"received {len(got)} of 200"
+    assert [t for t, _ in got] == list(range(200))
+    assert all(k == "robot/state" for _, k in got)
+    assert bad == ["robot/state"]
+
+
+def test_query_reply_and_errors(make_bus):
+    server, client = make_bus(), make_bus()
+    server.queryable("svc/echo", lambda req: b"echo:" + req)
+
+    def fail(_req):
+        raise ValueError("nope")
+
+    server.queryable("svc/fail", fail)
+    server.announce("server")
+    client.wait_alive({"server"}, timeout=10)
+    assert client.query("svc/echo", b"hi") == b"echo:hi"
+    with pytest.raises(RuntimeError, match="ValueError: nope"):
+        client.query("svc/fail", b"")
+    with pytest.raises(TimeoutError, match="is the service running"):
+        client.query("svc/none", b"", timeout=0.5)
+
+
+def test_liveliness_tracks_services_coming_and_going(make_bus, bus_config):
+    watcher = make_bus()
+    events = []
+    seen = threading.Condition()
+
+    def on_alive(name, alive):
+        with seen:
+            events.append((name, alive))
+            seen.notify_all()
+
+    watcher.watch_alive(on_alive)
+    other = Bus(bus_config)
+    other.announce("sim")
+    watcher.wait_alive({"sim"}, timeout=10)
+    other.close()
+    with seen:
+        assert seen.wait_for(lambda: ("sim", False) in events, timeout=10)
+    assert ("sim", True) in events
+    with pytest.raises(TimeoutError, match="sim"):
+        watcher.wait_alive({"sim"}, timeout=0.5)
+
+
+def test_peer_mode_defaults_to_loopback():
+    cfg = BusConfig(mode="peer")
+    with Bus(cfg) as bus:
+        assert not bus.session.is_closed()

@@ -1,0 +1,51 @@
+import pytest
+
+from services.core.bus import BusConfig
+from services.core.config import ConfigError, Frozen, load_config, parse_overrides
+
+
+class Inner(Frozen):
+    a: int = 1
+    b: list[str] = []
+
+
+class Model(Frozen):
+    bus: BusConfig = BusConfig()
+    inner: Inner = Inner()
+    rate: float = 20.0
+    name: str = "x"
+
+
+def test_precedence_defaults_yaml_env_cli(tmp_path):
+    y = tmp_path / "c.yaml"
+    y.write_text("bus: {connect: [tcp/a:1]}\nsvc:\n  rate: 5\n  name: from-yaml\n  inner: {a: 2}\n")
+    env = {"VIEWSCALE_RATE": "7", "VIEWSCALE_INNER__A": "3", "VIEWSCALE_UNRELATED": "1"}
+    cfg = load_config(Model, y, ["inner.a=4"], environ=env, section="svc")
+    assert cfg.bus.connect == ["tcp/a:1"]  # shared top-level key reaches the section
+    assert cfg.name == "from-yaml"  # yaml beats default
+    assert cfg.rate == 7.0  # env beats yaml
+    assert cfg.inner.a == 4  # cli beats env
+    assert cfg.inner.b == []  # untouched default
+
+
+def test_flow_values_parse():
+    assert parse_overrides(["bus.connect=[tcp/127.0.0.1:7447]", "x=true"]) == {
+        "bus": {"connect": ["tcp/127.0.0.1:7447"]}, "x": True}
+
+
+def test_unknown_field_is_an_error_naming_it(tmp_path):
+    with pytest.raises(ConfigError, match="rat"):
+        load_config(Model, None, ["rat=3"], environ={})
+
+
+def test_bad_override_and_missing_file(tmp_path):
+    with pytest.raises(ConfigError, match="key.path=value"):
+        load_config(Model, None, ["rate"], environ={})
+    with pytest.raises(ConfigError, match="does not exist"):
+        load_config(Model, tmp_path / "nope.yaml", environ={})
+
+
+def test_config_is_frozen():
+    cfg = Model()
+    with pytest.raises(Exception):
+        cfg.rate = 3.0  # type: ignore[misc]
