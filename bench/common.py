@@ -1,0 +1,49 @@
+"""What every benchmark shares: the machine description and the RESULTS.md row.
+
+Each benchmark prints exactly one JSON line on stdout and appends it, with the machine and
+the date, to bench/RESULTS.md.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+from datetime import datetime, timezone
+from pathlib import Path
+
+RESULTS = Path(__file__).resolve().parent / "RESULTS.md"
+HEADER = "# Benchmark results\n\nOne row per run, appended by the scripts in bench/ (newest last).\n\n"
+
+
+def machine() -> str:
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    gpu = ""
+    try:
+        import torch
+
+        if torch.cuda.is_available():
+            gpu = f", GPU {torch.cuda.get_device_name(0)}"
+    except ImportError:
+        pass
+    return f"{platform.node()} ({cpu}, {os.cpu_count()} cores{gpu or ', no GPU'})"
+
+
+def report(name: str, result: dict) -> dict:
+    """Print the JSON line and append it to RESULTS.md; returns the full record."""
+    record = {"bench": name, "date": datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
+              "machine": machine(), **result}
+    line = json.dumps(record, sort_keys=False)
+    print(line, flush=True)
+    if not RESULTS.exists():
+        RESULTS.write_text(HEADER)
+    with RESULTS.open("a") as fh:
+        fh.write(f"- `{name}` {record['date']} on {record['machine']}:\n  `{json.dumps(result)}`\n")
+    return record
