@@ -1,0 +1,114 @@
+"""Image encoders: crops, GroupNorm, spatial softmax, and the DINOv3 + LoRA path on a tiny ViT."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import torch
+from safetensors.torch import save_file
+from torch import nn
+
+from services.policy.model.encoder import (
+    EncoderConfig,
+    ResNet18Encoder,
+    SpatialSoftmax,
+    build_encoder,
+    crop_images,
+)
+
+torch.set_num_threads(1)
+
+TINY_VIT = dict(hidden_size=32, intermediate_size=64, num_attention_heads=2, num_hidden_layers=2,
+                num_register_tokens=2, patch_size=8)
+
+
+def test_centre_crop_is_the_middle_window_and_random_crop_varies():
+    x = torch.arange(2 * 3 * 6 * 6, dtype=torch.float32).view(2, 3, 6, 6)
+    centre = crop_images(x, (4, 4), random=False)
+    assert torch.equal(centre, x[:, :, 1:5, 1:5])
+    torch.manual_seed(0)
+    windows = {tuple(crop_images(x, (4, 4), random=True)[0, 0, 0, :1].tolist()) for _ in range(20)}
+    assert len(windows) > 1  # the top-left pixel moves with the random window
+    img = torch.randn(8, 3, 10, 12)
+    out = crop_images(img, (7, 9), random=True)
+    # every random crop is a true sub-window of its own image
+    for i in range(8):
+        found = any(
+            torch.equal(out[i], img[i, :, t : t + 7, l : l + 9]) for t in range(4) for l in range(4)
+        )
+        assert found
+    with pytest.raises(ValueError, match="larger"):
+        crop_images(img, (11, 11), random=False)
+
+
+def test_crop_ratio_gives_diffusion_policy_crop():
+    assert EncoderConfig().crop_for((84, 84)) == (76, 76)
+    assert EncoderConfig(crop=(60, 70)).crop_for((84, 84)) == (60, 70)
+    assert EncoderConfig(kind="dinov3", vit_config=TINY_VIT).crop_for((84, 84)) == (72, 72)  # whole 8-px patches
+
+
+def test_spatial_softmax_finds_a_peaked_keypoint():
+    ss = SpatialSoftmax(1, 1)
+    with torch.no_grad():
+        ss.keypoints.weight.fill_(1.0)
+        ss.keypoints.bias.zero_()
+    fmap = torch.zeros(1, 1, 5, 5)
+    fmap[0, 0, 4, 0] = 100.0  # bottom-left: x = -1, y = +1
+    assert torch.allclose(ss(fmap), torch.tensor([[-1.0, 1.0]]), atol=1e-4)
+
+
+def test_resnet_uses_groupnorm_and_eval_is_deterministic():
+    torch.manual_seed(0)
+    cfg = EncoderConfig(width=8, stage_strides=(1, 2, 1, 1), num_keypoints=4, feature_dim=12)
+    enc = build_encoder(cfg, (32, 32))
+    assert isinstance(enc, ResNet18Encoder)
+    assert not any(isinstance(m, nn.modules.batchnorm._BatchNorm) for m in enc.modules())
+    assert sum(isinstance(m, nn.GroupNorm) for m in enc.modules()) >= 17  # stem + 8 blocks x 2
+    img = torch.rand(3, 3, 32, 32) * 2 - 1
+    enc.eval()
+    out = enc(img)
+    assert out.shape == (3, 12)
+    assert torch.equal(out, enc(img))
+    enc.train()
+    assert not torch.allclose(enc(img), enc(img))  # random crops differ between calls
+
+
+def _tiny_vit_file(tmp_path: Path) -> tuple[Path, dict[str, torch.Tensor]]:
+    from transformers import DINOv3ViTConfig, DINOv3ViTModel
+
+    torch.manual_seed(1)
+    vit = DINOv3ViTModel(DINOv3ViTConfig(**TINY_VIT))
+    state = {k: v.contiguous() for k, v in vit.state_dict().items()}
+    path = tmp_path / "vit.safetensors"
+    save_file(state, str(path))
+    return path, state
+
+
+def test_dinov3_loads_local_weights_and_trains_only_lora(tmp_path):
+    path, state = _tiny_vit_file(tmp_path)
+    cfg = EncoderConfig(kind="dinov3", vit_config=TINY_VIT, vit_weights=str(path), lora_rank=4, lora_alpha=8,
+                        feature_dim=16)
+    enc = build_encoder(cfg, (36, 36))
+    own = enc.vit.state_dict()
+    # pretrained weights under LoRA's wrapped names, untouched
+    assert torch.equal(own["model.layer.1.attention.v_proj.base_layer.weight"], state["model.layer.1.attention.v_proj.weight"])
+    assert torch.equal(own["embeddings.cls_token"], state["embeddings.cls_token"])
+    trainable = {n for n, p in enc.named_parameters() if p.requires_grad}
+    assert trainable and all("lora_" in n or n.startswith("proj.") for n in trainable)
+    assert any("q_proj.lora_A" in n for n in trainable)
+    enc.eval()
+    out = enc(torch.rand(2, 3, 36, 36) * 2 - 1)
+    assert out.shape == (2, 16)
+    out.sum().backward()
+    assert enc.vit.model.layer[0].attention.q_proj.lora_B.default.weight.grad is not None
+
+
+def test_dinov3_with_weights_of_another_shape_is_a_clear_error(tmp_path):
+    path, _ = _tiny_vit_file(tmp_path)
+    other = {**TINY_VIT, "hidden_size": 64, "intermediate_size": 128}
+    cfg = EncoderConfig(kind="dinov3", vit_config=other, vit_weights=str(path))
+    with pytest.raises(ValueError, match="shape mismatch"):
+        build_encoder(cfg, (32, 32))
+    with pytest.raises(FileNotFoundError, match="local safetensors"):
+        build_encoder(EncoderConfig(kind="dinov3", vit_config=TINY_VIT, vit_weights=str(tmp_path / "nope.safetensors")), (32, 32))
