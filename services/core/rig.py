@@ -47,11 +47,11 @@ class CameraSpec(Frozen):
 
 class RigSpec(Frozen):
     name: str  # rig name, recorded with every episode
-    center: tuple[float, float, float] = (0.5, 0.0, 0.1)  # workspace centre, world frame (m)
-    distance: float = 1.1  # base camera distance from the centre (m)
+    center: tuple[float, float, float] = (0.4, 0.0, 0.25)  # workspace centre, world frame (m): objects + arm in view
+    distance: float = 1.45  # base camera distance from the centre (m)
     azimuth_deg: float = 0.0  # base view direction: 0 = camera on +x looking back at the robot
     elevation_deg: float = 30.0  # base view height above the horizontal through the centre
-    fovy_deg: float = 50.0  # vertical field of view
+    fovy_deg: float = 45.0  # vertical field of view
     cameras: dict[str, CameraSpec] = Field(min_length=1)  # name -> rotation of the base view
 
 
