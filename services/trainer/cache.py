@@ -1,0 +1,535 @@
+"""The training cache: recorded episodes -> pseudo-demos as memory-mappable numpy arrays.
+
+Layout of a dataset directory::
+
+    manifest.json        written last: build parameters, source MCAPs and their sha256. Its
+                         presence marks the dataset complete; a build removes it first.
+    meta.json            action space, state frame, views, To/Tp/Ta, image size, per-view
+                         calibration (K at the cached size, R_ext, position), source episodes
+    normalizer.json      services.policy.model.normalizer.Normalizer
+    summary.json         counts, drops by reason, action statistics
+    contact_sheet.png    first/middle/last frame of each view of a few episodes, with the
+                         trajectory drawn from the pseudo-demo's own actions
+    episodes/<stem>/     one MCAP's pseudo-demos: episode.json and, per view,
+                         <view>.frames.npy (n, H, W, 3) uint8, <view>.state.npy (n, D) float32,
+                         <view>.action.npy (n, 7) float32, <view>.tick.npy, <view>.stamp_ns.npy,
+                         <view>.ends.npy (segment ends)
+
+Builds are incremental: an episode directory is reused when its source hash and the
+parameters that shaped its arrays are unchanged, and the whole build is skipped when nothing
+changed. Each episode is written under a temporary name and renamed into place when complete.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import time
+from dataclasses import asdict, dataclass, field
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any, Callable
+
+import cv2
+import numpy as np
+
+from services.policy.model.normalizer import Normalizer, NormalizerStats
+from services.trainer.action_spaces import ACTION_DIM, STATE_NAMES, check_space, resolve_state_frame
+from services.trainer.episodes import (
+    CameraCalib,
+    EpisodeError,
+    align,
+    default_max_frame_age_ns,
+    load_raw_episode,
+    segments,
+)
+from services.trainer.pseudo_demos import PseudoDemo, chunk_starts, make_pseudo_demo
+
+VERSION = 1
+MANIFEST = "manifest.json"
+META = "meta.json"
+NORMALIZER = "normalizer.json"
+SUMMARY = "summary.json"
+CONTACT_SHEET = "contact_sheet.png"
+EPISODES = "episodes"
+ARRAYS = ("frames", "state", "action", "tick", "stamp_ns", "ends")
+
+
+class DatasetError(ValueError):
+    """A user-facing problem with a dataset build or load; one clear line."""
+
+
+@dataclass(frozen=True)
+class BuildParams:
+    views: tuple[str, ...]  # camera names, in the order their pseudo-demos are indexed
+    space: str = "camera"  # action space: base, eef or camera
+    state_frame: str = "auto"  # robot state frame: auto (follows the space), base or camera
+    image_size: tuple[int, int] = (84, 84)  # cached frame (width, height)
+    max_frame_age_ms: float | None = None  # a frame older than this at its tick is stale; default half a period
+    drop_stale_actions: bool = False  # also drop ticks whose applied action was a hold for want of a command
+    To: int = 2  # observation horizon
+    Tp: int = 16  # prediction horizon
+    Ta: int = 8  # action steps executed per chunk (sets the end padding, as diffusion_policy)
+    pad_actions: str = "edge"  # edge: repeat the edge row (diffusion_policy); hold: zero motion past the ends
+
+    def __post_init__(self):
+        if not self.views:
+            raise DatasetError("empty view selection: name at least one camera, e.g. --views F,FL,FR")
+        if len(set(self.views)) != len(self.views):
+            raise DatasetError(f"view selection {','.join(self.views)} names a camera twice")
+        try:
+            check_space(self.space)
+            object.__setattr__(self, "state_frame", resolve_state_frame(self.state_frame, self.space))
+        except ValueError as exc:
+            raise DatasetError(str(exc)) from None
+        w, h = self.image_size
+        if w < 8 or h < 8:
+            raise DatasetError(f"image size {w}x{h} is too small")
+        if self.pad_actions not in ("edge", "hold"):
+            raise DatasetError(f"pad_actions must be edge or hold, not {self.pad_actions!r}")
+        try:
+            chunk_starts(np.zeros(0, np.int64), self.To, self.Tp, self.Ta)
+        except ValueError as exc:
+            raise DatasetError(str(exc)) from None
+
+    def array_key(self) -> dict[str, Any]:
+        """What shapes the cached arrays; a change rebuilds every episode."""
+        return {
+            "version": VERSION,
+            "views": list(self.views),
+            "space": self.space,
+            "state_frame": self.state_frame,
+            "image_size": list(self.image_size),
+            "max_frame_age_ms": self.max_frame_age_ms,
+            "drop_stale_actions": self.drop_stale_actions,
+        }
+
+    def to_json(self) -> dict[str, Any]:
+        d = asdict(self)
+        d["views"], d["image_size"] = list(self.views), list(self.image_size)
+        return d
+
+
+@dataclass
+class BuildResult:
+    out: Path
+    up_to_date: bool  # nothing changed: the existing dataset was kept as it was
+    built: int = 0  # episodes decoded in this run
+    reused: int = 0  # episodes kept from an earlier build
+    frames: int = 0  # frames decoded into the cache in this run
+    seconds: float = 0.0
+    summary: dict[str, Any] = field(default_factory=dict)
+
+
+# -- helpers --------------------------------------------------------------------------------------
+
+
+def sha256_file(path: Path, block: int = 1 << 20) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        while chunk := f.read(block):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def _write_json(path: Path, data: Any) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(data, indent=2) + "\n")
+    os.replace(tmp, path)
+
+
+def find_episodes(raw: Path | list[Path]) -> list[Path]:
+    """Episode files under a directory (recursively) or given one by one, sorted by path."""
+    paths = raw if isinstance(raw, list) else [raw]
+    found: list[Path] = []
+    for p in paths:
+        p = Path(p)
+        if p.is_dir():
+            found += sorted(q for q in p.rglob("*.mcap") if q.is_file())
+        elif p.is_file() or p.suffix == ".mcap":
+            if not p.is_file():
+                raise DatasetError(f"episode file {p} does not exist")
+            found.append(p)
+        else:
+            raise DatasetError(f"raw data path {p} does not exist")
+    if not found:
+        raise DatasetError(f"no episode files (*.mcap) under {', '.join(str(p) for p in paths)}")
+    stems: dict[str, Path] = {}
+    for f in found:
+        if f.stem in stems:
+            raise DatasetError(f"two episodes named {f.stem}: {stems[f.stem]} and {f}")
+        stems[f.stem] = f
+    return found
+
+
+_REDUCED = {8: cv2.IMREAD_REDUCED_COLOR_8, 4: cv2.IMREAD_REDUCED_COLOR_4, 2: cv2.IMREAD_REDUCED_COLOR_2,
+            1: cv2.IMREAD_COLOR}
+
+
+def decode_resized(data: bytes, size: tuple[int, int], src: tuple[int, int]) -> np.ndarray | None:
+    """JPEG -> (H, W, 3) uint8 RGB at ``size`` (W, H), or None if undecodable.
+
+    When the source is at least twice the target, libjpeg decodes at 1/2, 1/4 or 1/8 scale
+    directly (DCT scaling), which is much faster than decoding in full and shrinking.
+    """
+    w, h = size
+    factor = 1
+    for f in (8, 4, 2):
+        if src[0] // f >= w and src[1] // f >= h:
+            factor = f
+            break
+    if len(data) < 4 or data[:2] != b"\xff\xd8":
+        return None
+    bgr = cv2.imdecode(np.frombuffer(data, np.uint8), _REDUCED[factor])
+    if bgr is None:
+        return None
+    if bgr.shape[1] != w or bgr.shape[0] != h:
+        bgr = cv2.resize(bgr, (w, h), interpolation=cv2.INTER_AREA)
+    return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+
+
+def _jpeg_size(data: bytes) -> tuple[int, int] | None:
+    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR) if data[:2] == b"\xff\xd8" else None
+    return None if img is None else (img.shape[1], img.shape[0])
+
+
+# -- one episode ----------------------------------------------------------------------------------
+
+
+def build_episode(src: Path, sha: str, dest: Path, params: BuildParams) -> dict[str, Any]:
+    """Decode one MCAP into ``dest`` (which must not exist); returns its episode.json content."""
+    ep = load_raw_episode(src, list(params.views))
+    age_ns = (int(params.max_frame_age_ms * 1e6) if params.max_frame_age_ms is not None
+              else default_max_frame_age_ns(ep.control_hz))
+    al = align(ep, list(params.views), age_ns, params.drop_stale_actions)
+    size = tuple(params.image_size)
+    dest.mkdir(parents=True)
+    views_info: dict[str, Any] = {}
+    frames_done = 0
+    for v in params.views:
+        calib = ep.calib.get(v)
+        pd = make_pseudo_demo(al, v, params.space, params.state_frame, calib, source=src.name)
+        # Source size: the calibration's, checked against the first frame (K depends on it).
+        first = ep.frame_data[v][int(pd.frame_index[0])] if len(pd.tick) else None
+        got = _jpeg_size(first) if first is not None else None
+        if calib is not None and got is not None and got != (calib.width, calib.height):
+            raise EpisodeError(f"{src.name}: camera {v!r} frames are {got[0]}x{got[1]} but its calibration "
+                               f"says {calib.width}x{calib.height}")
+        src_size = (calib.width, calib.height) if calib is not None else (got or size)
+        frames = np.zeros((len(pd.tick), size[1], size[0], 3), np.uint8)
+        ok = np.ones(len(pd.tick), bool)
+        for row, fi in enumerate(pd.frame_index):
+            img = decode_resized(ep.frame_data[v][int(fi)], size, src_size)
+            if img is None:
+                ok[row] = False
+            else:
+                frames[row] = img
+        frames_done += int(ok.sum())
+        al.drops["views"][v]["bad_frame"] = int((~ok).sum())
+        if not ok.all():  # an undecodable frame drops its tick for this view, like a missing one
+            pd = PseudoDemo(pd.episode_id, v, pd.tick[ok], pd.stamp_ns[ok], pd.frame_index[ok], pd.state[ok],
+                            pd.action[ok], segments(pd.tick[ok]))
+            frames = frames[ok]
+        np.save(dest / f"{v}.frames.npy", frames)
+        np.save(dest / f"{v}.state.npy", pd.state.astype(np.float32))
+        np.save(dest / f"{v}.action.npy", pd.action.astype(np.float32))
+        np.save(dest / f"{v}.tick.npy", pd.tick)
+        np.save(dest / f"{v}.stamp_ns.npy", pd.stamp_ns)
+        np.save(dest / f"{v}.ends.npy", pd.ends)
+        views_info[v] = {
+            "rows": int(len(pd.tick)),
+            "segments": int(len(pd.ends)),
+            "calib": calib.to_json(*size) if calib is not None else None,
+        }
+    md = ep.meta
+    info = {
+        "version": VERSION,
+        "episode_id": ep.episode_id,
+        "source": {"path": str(src.resolve()), "sha256": sha, "size": src.stat().st_size},
+        "key": params.array_key(),
+        "meta": {k: md.get(k) for k in ("task", "seed", "rig", "success", "control_hz", "achieved_hz", "flags",
+                                         "start_ns", "end_ns") if k in md},
+        "ticks": int(len(ep.state_tick)),
+        "aligned_ticks": int(len(al.tick)),
+        "max_frame_age_ns": age_ns,
+        "drops": al.drops,
+        "frames_decoded": frames_done,
+        "views": views_info,
+    }
+    _write_json(dest / "episode.json", info)
+    return info
+
+
+# -- the dataset store (read side, torch-free) --------------------------------------------------
+
+
+@dataclass
+class StoredDemo:
+    """A pseudo-demo in the cache: where its arrays live and their length."""
+
+    episode_id: str
+    episode_dir: Path
+    view: str
+    view_index: int
+    rows: int
+    calib: dict[str, Any] | None
+
+    def path(self, name: str) -> Path:
+        return self.episode_dir / f"{self.view}.{name}.npy"
+
+    def load(self, name: str, mmap: bool = True) -> np.ndarray:
+        return np.load(self.path(name), mmap_mode="r" if mmap else None)
+
+
+class DatasetStore:
+    """A complete dataset directory: meta, normalizer, pseudo-demos. Refuses incomplete builds."""
+
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+        if not self.path.is_dir():
+            raise DatasetError(f"dataset {self.path} does not exist")
+        manifest = self.path / MANIFEST
+        if not manifest.is_file():
+            hint = " (a build did not finish: run `viewscale dataset build` again)" if (
+                self.path / EPISODES).is_dir() else ""
+            raise DatasetError(f"{self.path} is not a complete dataset: no {MANIFEST}{hint}")
+        try:
+            self.manifest = json.loads(manifest.read_text())
+            self.meta = json.loads((self.path / META).read_text())
+            self.normalizer = Normalizer.load(self.path / NORMALIZER)
+            self.summary = json.loads((self.path / SUMMARY).read_text())
+        except (OSError, ValueError, KeyError) as exc:
+            raise DatasetError(f"{self.path} is damaged: {exc}") from exc
+        if not self.manifest.get("complete"):
+            raise DatasetError(f"{self.path} is not a complete dataset")
+        self.views: list[str] = list(self.meta["views"])
+        self.demos: list[StoredDemo] = []
+        for e in self.meta["episodes"]:
+            d = self.path / EPISODES / e["dir"]
+            for vi, v in enumerate(self.views):
+                ev = e["views"][v]
+                self.demos.append(StoredDemo(e["id"], d, v, vi, int(ev["rows"]), ev.get("calib")))
+
+    @property
+    def episode_ids(self) -> list[str]:
+        return [e["id"] for e in self.meta["episodes"]]
+
+
+# -- the build ------------------------------------------------------------------------------------
+
+
+def _summarise(store_dir: Path, params: BuildParams, episodes: list[dict[str, Any]], norm: Normalizer,
+               skipped: list[dict[str, str]]) -> dict[str, Any]:
+    acts, samples_per_view, rows_per_view = [], {v: 0 for v in params.views}, {v: 0 for v in params.views}
+    drops: dict[str, Any] = {"duplicate_state": 0, "no_action": 0, "stale_action": 0, "action_without_state": 0,
+                             "views": {v: {"missing_frame": 0, "stale_frame": 0, "bad_frame": 0}
+                                       for v in params.views}}
+    for e in episodes:
+        d = store_dir / EPISODES / e["dir"]
+        info = e["info"]
+        for k in ("duplicate_state", "no_action", "stale_action", "action_without_state"):
+            drops[k] += int(info["drops"].get(k, 0))
+        for v in params.views:
+            for k, n in info["drops"]["views"][v].items():
+                drops["views"][v][k] = drops["views"][v].get(k, 0) + int(n)
+            a = np.load(d / f"{v}.action.npy")
+            acts.append(a)
+            rows_per_view[v] += len(a)
+            samples_per_view[v] += len(chunk_starts(np.load(d / f"{v}.ends.npy"), params.To, params.Tp, params.Ta))
+    a = np.concatenate(acts) if acts else np.zeros((0, ACTION_DIM))
+    a_n = norm.normalize_action(a) if len(a) else a
+
+    def stat(f) -> list[float] | None:
+        return [round(float(x), 6) for x in f(a, axis=0)] if len(a) else None
+
+    return {
+        "episodes": len(episodes),
+        "views": list(params.views),
+        "pseudo_demos": len(episodes) * len(params.views),
+        "action_space": params.space,
+        "state_frame": params.state_frame,
+        "image_size": list(params.image_size),
+        "To": params.To, "Tp": params.Tp, "Ta": params.Ta,
+        "ticks": sum(int(e["info"]["ticks"]) for e in episodes),
+        "rows": sum(rows_per_view.values()),
+        "rows_per_view": rows_per_view,
+        "samples": sum(samples_per_view.values()),
+        "samples_per_view": samples_per_view,
+        "successful_episodes": sum(1 for e in episodes if e["info"]["meta"].get("success")),
+        "flagged_episodes": {e["id"]: e["info"]["meta"]["flags"] for e in episodes if e["info"]["meta"].get("flags")},
+        "drops": drops,
+        "skipped_episodes": skipped,
+        "action_stats": {
+            "layout": ["dp_x", "dp_y", "dp_z", "drot_x", "drot_y", "drot_z", "gripper"],
+            "mean": stat(np.mean), "std": stat(np.std), "min": stat(np.min), "max": stat(np.max),
+            "pos_norm_max": float(np.linalg.norm(a[:, 0:3], axis=1).max()) if len(a) else 0.0,
+            "rot_norm_max": float(np.linalg.norm(a[:, 3:6], axis=1).max()) if len(a) else 0.0,
+            "normalised_abs_max": [round(float(x), 6) for x in np.abs(a_n).max(axis=0)] if len(a) else None,
+        },
+        "normalizer": {"pos_scale": norm.pos_scale, "rot_scale": norm.rot_scale},
+    }
+
+
+def build_dataset(
+    raw: Path | list[Path],
+    out: str | Path,
+    params: BuildParams,
+    *,
+    progress: Callable[[str], None] = lambda msg: None,
+    skip_bad: bool = False,
+    force: bool = False,
+    contact_episodes: int = 3,
+) -> BuildResult:
+    """Build (or bring up to date) the dataset at ``out`` from the episodes under ``raw``."""
+    t0 = time.perf_counter()
+    out = Path(out)
+    sources = find_episodes(raw)
+    if out.exists() and not out.is_dir():
+        raise DatasetError(f"output {out} exists and is not a directory")
+    if out.is_dir() and any(out.iterdir()) and not ((out / MANIFEST).exists() or (out / EPISODES).is_dir()):
+        raise DatasetError(f"output {out} is a non-empty directory that is not a viewscale dataset")
+
+    progress(f"hashing {len(sources)} episode files")
+    hashes = {s: sha256_file(s) for s in sources}
+    wanted_manifest = {
+        "version": VERSION,
+        "params": params.to_json(),
+        "sources": [{"path": str(s.resolve()), "sha256": hashes[s], "dir": s.stem} for s in sources],
+    }
+    manifest_path = out / MANIFEST
+    if manifest_path.is_file() and not force:
+        try:
+            old = json.loads(manifest_path.read_text())
+        except ValueError:
+            old = {}
+        same = {k: old.get(k) for k in wanted_manifest} == wanted_manifest and old.get("complete")
+        if same and all((out / f).is_file() for f in (META, NORMALIZER, SUMMARY)):
+            summary = json.loads((out / SUMMARY).read_text())
+            progress(f"{out} is up to date ({len(sources)} episodes unchanged)")
+            return BuildResult(out, True, reused=len(sources), seconds=time.perf_counter() - t0, summary=summary)
+
+    # From here on the directory is not a complete dataset until the new manifest lands.
+    (out / EPISODES).mkdir(parents=True, exist_ok=True)
+    manifest_path.unlink(missing_ok=True)
+    for leftover in (out / EPISODES).glob(".tmp-*"):
+        shutil.rmtree(leftover)
+
+    key = params.array_key()
+    episodes: list[dict[str, Any]] = []
+    skipped: list[dict[str, str]] = []
+    built = reused = frames = 0
+    for i, src in enumerate(sources, 1):
+        dest = out / EPISODES / src.stem
+        info = None
+        if dest.is_dir() and not force:
+            try:
+                prev = json.loads((dest / "episode.json").read_text())
+                if prev["source"]["sha256"] == hashes[src] and prev["key"] == key:
+                    info = prev
+            except (OSError, ValueError, KeyError):
+                info = None
+        if info is not None:
+            reused += 1
+            progress(f"[{i}/{len(sources)}] {src.name}: unchanged, reused")
+        else:
+            t = time.perf_counter()
+            tmp = out / EPISODES / f".tmp-{src.stem}"
+            try:
+                info = build_episode(src, hashes[src], tmp, params)
+            except EpisodeError as exc:
+                shutil.rmtree(tmp, ignore_errors=True)
+                if not skip_bad:
+                    raise
+                skipped.append({"file": str(src), "error": str(exc)})
+                progress(f"[{i}/{len(sources)}] {src.name}: SKIPPED: {exc}")
+                continue
+            except BaseException:
+                shutil.rmtree(tmp, ignore_errors=True)
+                raise
+            if dest.exists():
+                shutil.rmtree(dest)
+            os.replace(tmp, dest)
+            built += 1
+            frames += info["frames_decoded"]
+            rows = ", ".join(f"{v} {info['views'][v]['rows']}" for v in params.views)
+            progress(f"[{i}/{len(sources)}] {src.name}: {info['ticks']} ticks -> rows {rows} "
+                     f"({time.perf_counter() - t:.1f} s)")
+        episodes.append({"id": info["episode_id"], "dir": src.stem, "info": info})
+
+    keep = {e["dir"] for e in episodes}
+    for d in (out / EPISODES).iterdir():
+        if d.is_dir() and d.name not in keep:
+            shutil.rmtree(d)
+    if not episodes:
+        raise DatasetError("no usable episodes: every one was skipped (see the messages above)")
+    ids = [e["id"] for e in episodes]
+    if len(set(ids)) != len(ids):
+        dup = sorted({x for x in ids if ids.count(x) > 1})
+        raise DatasetError(f"episode id {dup[0]} appears in more than one file")
+
+    stats = NormalizerStats()
+    for e in episodes:
+        d = out / EPISODES / e["dir"]
+        for v in params.views:
+            stats.add_actions(np.load(d / f"{v}.action.npy"))
+            stats.add_states(np.load(d / f"{v}.state.npy"))
+    if stats.state_min is None:
+        raise DatasetError("no samples: every tick was dropped (see the drop counts with --verbose)")
+    norm = stats.normalizer(STATE_NAMES)
+    norm.save(out / NORMALIZER)
+
+    cameras: dict[str, Any] = {}
+    varies: dict[str, bool] = {}
+    for v in params.views:
+        cals = [e["info"]["views"][v]["calib"] for e in episodes if e["info"]["views"][v]["calib"] is not None]
+        cameras[v] = cals[0] if cals else None
+        varies[v] = any(not np.allclose(c["R_ext"], cals[0]["R_ext"], atol=1e-6)
+                        or not np.allclose(c["position"], cals[0]["position"], atol=1e-6)
+                        or not np.allclose(c["K"], cals[0]["K"], atol=1e-6) for c in cals[1:])
+    meta = {
+        "version": VERSION,
+        "action_space": params.space,
+        "state_frame": params.state_frame,
+        "action_dim": ACTION_DIM,
+        "action_layout": ["dp_x", "dp_y", "dp_z", "drot_x", "drot_y", "drot_z", "gripper"],
+        "state_dim": len(STATE_NAMES),
+        "state_names": list(STATE_NAMES),
+        "views": list(params.views),
+        "To": params.To,
+        "Tp": params.Tp,
+        "Ta": params.Ta,
+        "pad_actions": params.pad_actions,
+        "image_size": {"width": params.image_size[0], "height": params.image_size[1]},
+        "cameras": cameras,  # per view, from the first episode; per-episode copies in episodes/<dir>/episode.json
+        "calibration_varies": varies,
+        "episodes": [
+            {"id": e["id"], "dir": e["dir"], "source": e["info"]["source"]["path"],
+             "sha256": e["info"]["source"]["sha256"], "task": e["info"]["meta"].get("task"),
+             "success": e["info"]["meta"].get("success"),
+             "views": {v: {"rows": e["info"]["views"][v]["rows"], "calib": e["info"]["views"][v]["calib"]}
+                       for v in params.views}}
+            for e in episodes
+        ],
+    }
+    _write_json(out / META, meta)
+    summary = _summarise(out, params, episodes, norm, skipped)
+    summary["build_s"] = round(time.perf_counter() - t0, 3)
+    _write_json(out / SUMMARY, summary)
+
+    if contact_episodes > 0:
+        from services.trainer.contact_sheet import write_contact_sheet
+
+        write_contact_sheet(out, meta, out / CONTACT_SHEET, max_episodes=contact_episodes)
+
+    manifest = dict(wanted_manifest)
+    manifest["complete"] = True
+    manifest["built_at"] = datetime.now(timezone.utc).isoformat(timespec="seconds")
+    _write_json(manifest_path, manifest)
+    return BuildResult(out, False, built=built, reused=reused, frames=frames,
+                       seconds=time.perf_counter() - t0, summary=summary)
+
+
+def decode_calib(d: dict[str, Any] | None, name: str) -> CameraCalib | None:
+    return None if d is None else CameraCalib.from_json(name, d)

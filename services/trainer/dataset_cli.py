@@ -1,0 +1,179 @@
+"""``viewscale dataset build`` and ``viewscale dataset info``.
+
+    viewscale dataset build --raw data/raw --views F,FL,FR,FU,FD --space camera --out data/ds
+    viewscale dataset info data/ds
+
+Progress goes to stderr, one line per episode; the summary to stdout. A user's mistake (a
+missing or corrupt file, an unknown view, an empty selection) is one ``error:`` line, exit 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+from services.trainer.action_spaces import SPACES, STATE_FRAMES
+from services.trainer.cache import CONTACT_SHEET, BuildParams, DatasetError, DatasetStore, build_dataset
+from services.trainer.episodes import EpisodeError
+
+
+def _size(text: str) -> tuple[int, int]:
+    try:
+        if "x" in text.lower():
+            w, h = text.lower().split("x")
+            return int(w), int(h)
+        return int(text), int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"image size must look like 84 or 128x96, not {text!r}") from None
+
+
+def _views(text: str) -> tuple[str, ...]:
+    return tuple(v.strip() for v in text.split(",") if v.strip())
+
+
+def _err(msg: str) -> int:
+    print(f"error: {msg}", file=sys.stderr)
+    return 2
+
+
+def _fmt_vec(v: list[float] | None) -> str:
+    return "-" if v is None else "[" + ", ".join(f"{x:+.4f}" for x in v) + "]"
+
+
+def format_summary(s: dict[str, Any], path: Path | None = None) -> str:
+    lines = []
+    if path is not None:
+        lines.append(f"dataset {path}")
+    lines += [
+        f"  episodes      {s['episodes']} ({s['successful_episodes']} successful)",
+        f"  views         {', '.join(s['views'])}  -> {s['pseudo_demos']} pseudo-demos",
+        f"  action space  {s['action_space']}   state frame {s['state_frame']}",
+        f"  image size    {s['image_size'][0]}x{s['image_size'][1]}   To={s['To']} Tp={s['Tp']} Ta={s['Ta']}",
+        f"  ticks         {s['ticks']} recorded, {s['rows']} kept over all views",
+        f"  samples       {s['samples']}  (" + ", ".join(f"{v} {n}" for v, n in s["samples_per_view"].items()) + ")",
+    ]
+    d = s["drops"]
+    view_drops = ", ".join(
+        f"{v}: " + " ".join(f"{k}={n}" for k, n in c.items() if n) for v, c in d["views"].items()
+        if any(c.values()))
+    lines.append(f"  dropped       no_action={d['no_action']} duplicate_state={d['duplicate_state']} "
+                 f"stale_action={d['stale_action']}{' (kept)' if d['stale_action'] else ''}"
+                 + (f"; frames {view_drops}" if view_drops else "; no frames dropped"))
+    a = s["action_stats"]
+    lines += [
+        "  actions       (dp_x dp_y dp_z drot_x drot_y drot_z gripper)",
+        f"    mean        {_fmt_vec(a['mean'])}",
+        f"    std         {_fmt_vec(a['std'])}",
+        f"    min         {_fmt_vec(a['min'])}",
+        f"    max         {_fmt_vec(a['max'])}",
+        f"    |normed|max {_fmt_vec(a['normalised_abs_max'])}",
+        f"  normalizer    pos_scale {s['normalizer']['pos_scale']:.5f} m   rot_scale {s['normalizer']['rot_scale']:.5f} rad",
+    ]
+    if s.get("flagged_episodes"):
+        lines.append(f"  flagged       {len(s['flagged_episodes'])} episodes: " + "; ".join(
+            f"{k}: {', '.join(v)}" for k, v in list(s["flagged_episodes"].items())[:5]))
+    if s.get("skipped_episodes"):
+        lines.append(f"  skipped       {len(s['skipped_episodes'])} episodes: " + "; ".join(
+            x["error"] for x in s["skipped_episodes"][:5]))
+    return "\n".join(lines)
+
+
+def _build(args: argparse.Namespace) -> int:
+    def progress(msg: str) -> None:
+        print(msg, file=sys.stderr, flush=True)
+
+    try:
+        params = BuildParams(
+            views=_views(args.views),
+            space=args.space,
+            state_frame=args.state_frame,
+            image_size=args.image_size,
+            max_frame_age_ms=args.max_frame_age_ms,
+            drop_stale_actions=args.drop_stale_actions,
+            To=args.To,
+            Tp=args.Tp,
+            Ta=args.Ta,
+            pad_actions=args.pad_actions,
+        )
+        result = build_dataset([Path(p) for p in args.raw], Path(args.out), params, progress=progress,
+                               skip_bad=args.skip_bad, force=args.force, contact_episodes=args.contact_episodes)
+    except (DatasetError, EpisodeError) as exc:
+        return _err(str(exc))
+    s = result.summary
+    if args.json:
+        print(json.dumps(s))
+        return 0
+    print(format_summary(s, result.out))
+    if result.up_to_date:
+        print("  (up to date: nothing rebuilt)")
+    else:
+        print(f"  built {result.built} episodes, reused {result.reused}, {result.frames} frames decoded "
+              f"in {result.seconds:.1f} s")
+    if args.contact_episodes > 0:
+        print(f"  contact sheet {result.out / CONTACT_SHEET}")
+    return 0
+
+
+def _info(args: argparse.Namespace) -> int:
+    try:
+        store = DatasetStore(args.path)
+    except DatasetError as exc:
+        return _err(str(exc))
+    if args.json:
+        print(json.dumps(store.summary))
+        return 0
+    print(format_summary(store.summary, store.path))
+    print(f"  built at      {store.manifest.get('built_at', '?')} from {len(store.manifest['sources'])} files")
+    sheet = store.path / CONTACT_SHEET
+    if sheet.is_file():
+        print(f"  contact sheet {sheet}")
+    return 0
+
+
+def add_dataset_commands(subparsers: argparse._SubParsersAction) -> None:
+    """Register ``dataset build`` and ``dataset info`` on the top-level ``viewscale`` parser."""
+    p = subparsers.add_parser("dataset", help="build and inspect pseudo-demonstration datasets")
+    sub = p.add_subparsers(dest="dataset_command", required=True, metavar="ACTION")
+
+    b = sub.add_parser("build", help="recorded episodes -> one pseudo-demo per camera view, as a training cache")
+    b.add_argument("--raw", nargs="+", default=["data/raw"], help="directory of episode .mcap files, or files")
+    b.add_argument("--views", required=True, help="comma-separated camera names, e.g. F,FL,FR,FU,FD")
+    b.add_argument("--space", default="camera", choices=SPACES, help="action space (default camera)")
+    b.add_argument("--state-frame", default="auto", choices=STATE_FRAMES,
+                   help="frame of the robot state input; auto follows the action space (default)")
+    b.add_argument("--out", default="data/ds", help="dataset directory (default data/ds)")
+    b.add_argument("--image-size", type=_size, default=(84, 84), metavar="WxH",
+                   help="cached frame size, 84 or WxH (default 84x84)")
+    b.add_argument("--max-frame-age-ms", type=float, default=None,
+                   help="a frame older than this at its tick is stale (default half a control period)")
+    b.add_argument("--drop-stale-actions", action="store_true",
+                   help="also drop ticks where the robot held still for want of a command (kept by default)")
+    b.add_argument("--To", type=int, default=2, help="observation horizon (default 2)")
+    b.add_argument("--Tp", type=int, default=16, help="prediction horizon (default 16)")
+    b.add_argument("--Ta", type=int, default=8, help="executed action steps, sets end padding (default 8)")
+    b.add_argument("--pad-actions", default="edge", choices=("edge", "hold"),
+                   help="edge: repeat the edge action (diffusion_policy, default); hold: zero motion")
+    b.add_argument("--skip-bad", action="store_true", help="skip unreadable episodes instead of stopping")
+    b.add_argument("--force", action="store_true", help="rebuild every episode even if nothing changed")
+    b.add_argument("--contact-episodes", type=int, default=3, help="episodes on the contact sheet (0: none)")
+    b.add_argument("--json", action="store_true", help="print the summary as one JSON line")
+    b.set_defaults(func=_build)
+
+    i = sub.add_parser("info", help="print a dataset's summary")
+    i.add_argument("path", help="dataset directory")
+    i.add_argument("--json", action="store_true", help="print the summary as one JSON line")
+    i.set_defaults(func=_info)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="viewscale")
+    add_dataset_commands(parser.add_subparsers(dest="command", required=True))
+    args = parser.parse_args(argv)
+    return int(args.func(args) or 0)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,315 @@
+"""Episode MCAPs (written by the recorder's writer) -> dataset build -> loaded training batches."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import torch
+from dataset_fixtures import trajectory, write_episode
+from scipy.spatial.transform import Rotation
+
+from services.cli import main as viewscale
+from services.core.rig import load_rig
+from services.trainer.action_spaces import from_space, rot6d_to_matrix
+from services.trainer.cache import BuildParams, DatasetError, DatasetStore, build_dataset
+from services.trainer.dataset import load_dataset, split_episodes
+from services.trainer.episodes import EpisodeError
+
+VIEWS = ("F", "FL", "FR")
+N = 40
+
+
+@pytest.fixture(scope="module")
+def raw_dir(tmp_path_factory) -> Path:
+    d = tmp_path_factory.mktemp("raw")
+    for i in range(3):
+        write_episode(d, f"ep{i:03d}", N, seed=i)
+    return d
+
+
+@pytest.fixture(scope="module")
+def camera_ds(raw_dir, tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("ds") / "camera"
+    build_dataset(raw_dir, out, BuildParams(views=VIEWS, space="camera", image_size=(64, 48)))
+    return out
+
+
+def item_ticks(ds, i):
+    """(demo, obs ticks, action ticks) of item i, read from the stored tick arrays."""
+    j, cur, s, e = ds.index[i]
+    tick = np.load(ds.demos[j].path("tick"))
+    obs_rows = np.clip(np.arange(cur - ds.To + 1, cur + 1), s, e - 1)
+    act_rows = np.clip(np.arange(cur - ds.To + 1, cur - ds.To + 1 + ds.Tp), s, e - 1)
+    return ds.demos[j], tick[obs_rows], tick[act_rows]
+
+
+def test_build_gives_one_pseudo_demo_per_view_and_batches_of_the_contract_shapes(camera_ds):
+    store = DatasetStore(camera_ds)
+    s = store.summary
+    assert s["episodes"] == 3 and s["views"] == list(VIEWS) and s["pseudo_demos"] == 9
+    assert s["ticks"] == 3 * N and s["rows"] == 9 * N
+    per_demo = N - 16 + 8 + 2 - 1  # diffusion_policy sample count for one unbroken run
+    assert s["samples"] == 9 * per_demo
+    ds = load_dataset(camera_ds, split="all")
+    assert len(ds) == 9 * per_demo
+    loader = torch.utils.data.DataLoader(ds, batch_size=8, shuffle=True, num_workers=2)
+    batch = next(iter(loader))
+    assert batch["obs"].shape == (8, 2, 3, 48, 64) and batch["obs"].dtype == torch.float32
+    assert batch["state"].shape == (8, 2, 10)
+    assert batch["action"].shape == (8, 16, 7)
+    assert batch["view"].shape == (8,)
+    assert batch["obs"].min() >= -1 and batch["obs"].max() <= 1 and batch["obs"].max() > 0.9
+    assert batch["action"].abs().max() <= 1 + 1e-6
+    assert batch["state"].abs().max() <= 1 + 1e-6
+
+
+def test_samples_hold_the_recorded_actions_in_each_cameras_frame(camera_ds):
+    """Unnormalise, undo the camera transform with the calibration in meta.json, and compare with
+    the base-frame actions the episode was generated from, tick by tick."""
+    ds = load_dataset(camera_ds, split="all")
+    rig = load_rig("five15")
+    acts = {f"ep{i:03d}": trajectory(N, i)[0] for i in range(3)}
+    for i in np.random.default_rng(0).choice(len(ds), 40, replace=False):
+        item = ds[int(i)]
+        demo, _, a_ticks = item_ticks(ds, i)
+        cam = ds.camera(demo.view)
+        np.testing.assert_allclose(cam["R_ext"], rig.cameras[demo.view].R_ext, atol=1e-6)
+        a = ds.normalizer.unnormalize_action(item["action"].numpy().astype(np.float64))
+        base = from_space(a, "camera", R_ext=np.asarray(cam["R_ext"]))
+        np.testing.assert_allclose(base, acts[demo.episode_id][a_ticks], atol=2e-6)
+        assert item["view"] == ds.views.index(demo.view)
+
+
+def test_camera_space_state_is_the_eef_pose_in_that_camera(camera_ds):
+    ds = load_dataset(camera_ds, split="all")
+    rig = load_rig("five15")
+    for i in (0, len(ds) // 2, len(ds) - 1):
+        demo, o_ticks, _ = item_ticks(ds, i)
+        _, pos, R, grip = trajectory(N, int(demo.episode_id[2:]))
+        cam = rig.cameras[demo.view]
+        s = ds.normalizer.unnormalize_state(ds[i]["state"].numpy().astype(np.float64))
+        np.testing.assert_allclose(s[:, 0:3], cam.to_camera(pos[o_ticks]), atol=1e-5)
+        np.testing.assert_allclose(rot6d_to_matrix(s[:, 3:9]), cam.R_ext @ R[o_ticks], atol=1e-5)
+        np.testing.assert_allclose(s[:, 9], grip[o_ticks], atol=1e-6)
+
+
+def test_cached_frames_are_the_ticks_frames_and_meta_K_projects_into_them(camera_ds):
+    """Each recorded frame shows a dot at the EEF; in the cache it must sit where meta.json's K
+    (rescaled to the cached size) and R_ext project the EEF of the same tick."""
+    ds = load_dataset(camera_ds, split="all")
+    for i in range(0, len(ds), 23):
+        demo, o_ticks, _ = item_ticks(ds, i)
+        _, pos, _, _ = trajectory(N, int(demo.episode_id[2:]))
+        cam = ds.camera(demo.view)
+        K, R_ext, c = np.asarray(cam["K"]), np.asarray(cam["R_ext"]), np.asarray(cam["position"])
+        for k, tick in enumerate(o_ticks):
+            img = (ds[i]["obs"][k].numpy().transpose(1, 2, 0) + 1) * 127.5
+            bright = np.argwhere(img.min(axis=2) > 200)
+            assert len(bright), "the EEF dot is in every frame"
+            v, u = bright.mean(axis=0)
+            p = K @ (R_ext @ (pos[tick] - c))
+            assert abs(u - p[0] / p[2]) < 1.0 and abs(v - p[1] / p[2]) < 1.0
+
+
+def test_normalizer_is_shared_isotropic_and_bounded(camera_ds):
+    ds = load_dataset(camera_ds, split="all")
+    n = json.loads((camera_ds / "normalizer.json").read_text())
+    assert set(n) >= {"action", "state", "image"}
+    # Over every pseudo-demo of every view no normalised component exceeds 1, and the bound is met.
+    a = np.concatenate([np.load(d.path("action")) for d in ds.demos])
+    a_n = ds.normalizer.normalize_action(a)
+    assert np.abs(a_n).max() <= 1 + 1e-6
+    assert np.linalg.norm(a_n[:, 0:3], axis=1).max() == pytest.approx(1.0, abs=1e-5)
+    assert np.linalg.norm(a_n[:, 3:6], axis=1).max() == pytest.approx(1.0, abs=1e-5)
+
+
+def test_meta_and_manifest_describe_the_build(camera_ds, raw_dir):
+    meta = json.loads((camera_ds / "meta.json").read_text())
+    assert meta["action_space"] == "camera" and meta["state_frame"] == "camera"
+    assert (meta["To"], meta["Tp"], meta["views"]) == (2, 16, list(VIEWS))
+    assert meta["image_size"] == {"width": 64, "height": 48}
+    rig = load_rig("five15")
+    for v in VIEWS:
+        K = np.asarray(meta["cameras"][v]["K"])
+        np.testing.assert_allclose(K, rig.cameras[v].K(64, 48), atol=1e-6)  # same size: K unchanged
+        np.testing.assert_allclose(meta["cameras"][v]["position"], rig.cameras[v].position, atol=1e-6)
+    manifest = json.loads((camera_ds / "manifest.json").read_text())
+    assert manifest["complete"]
+    for src in manifest["sources"]:
+        assert src["sha256"] == hashlib.sha256(Path(src["path"]).read_bytes()).hexdigest()
+    sheet = cv2.imread(str(camera_ds / "contact_sheet.png"))
+    # three views tall, three episodes x (first, middle, last) wide, frames doubled or more
+    assert sheet.shape[0] > 3 * 2 * 48 and sheet.shape[1] == 9 * 64 * 4
+
+
+def test_resized_cache_keeps_K_consistent(raw_dir, tmp_path):
+    out = tmp_path / "ds"
+    build_dataset(raw_dir, out, BuildParams(views=("FR",), space="base", image_size=(32, 24)), contact_episodes=1)
+    ds = load_dataset(out, split="all")
+    K = np.asarray(ds.camera("FR")["K"])
+    np.testing.assert_allclose(K, load_rig("five15").cameras["FR"].K(32, 24), atol=1e-6)
+    assert ds[0]["obs"].shape == (2, 3, 24, 32)
+
+
+def test_eef_space_uses_the_rotation_of_the_actions_own_tick(raw_dir, tmp_path):
+    out = tmp_path / "eef"
+    build_dataset(raw_dir, out, BuildParams(views=("F",), space="eef", image_size=(32, 24)), contact_episodes=0)
+    ds = load_dataset(out, split="all")
+    assert ds.meta["state_frame"] == "base"
+    for i in (0, 7, len(ds) - 1):
+        demo, _, a_ticks = item_ticks(ds, i)
+        _, pos, R, _ = trajectory(N, int(demo.episode_id[2:]))
+        a = ds.normalizer.unnormalize_action(ds[i]["action"].numpy().astype(np.float64))
+        for k, t in enumerate(a_ticks):
+            if t + 1 < N:
+                # the step from tick t to t+1, seen from the EEF at tick t
+                np.testing.assert_allclose(a[k, 0:3], R[t].T @ (pos[t + 1] - pos[t]), atol=1e-6)
+                np.testing.assert_allclose(Rotation.from_rotvec(a[k, 3:6]).as_matrix(), R[t].T @ R[t + 1],
+                                           atol=1e-5)
+
+
+def test_held_out_views_are_simply_not_included(raw_dir, tmp_path):
+    out = tmp_path / "two"
+    r = build_dataset(raw_dir, out, BuildParams(views=("FU", "F"), space="camera", image_size=(32, 24)),
+                      contact_episodes=0)
+    assert r.summary["pseudo_demos"] == 6 and r.summary["views"] == ["FU", "F"]
+    ds = load_dataset(out, split="all")
+    assert {d.view for d in ds.demos} == {"FU", "F"}
+    assert set(ds.meta["cameras"]) == {"FU", "F"}
+    only_f = load_dataset(out, split="all", views=["F"])
+    assert {d.view for d in only_f.demos} == {"F"} and all(only_f[i]["view"] == 1 for i in range(3))
+    with pytest.raises(DatasetError, match="FL"):
+        load_dataset(out, views=["FL"])
+
+
+def test_drops_are_counted_and_chunks_never_cross_them(tmp_path):
+    raw = tmp_path / "raw"
+    write_episode(raw, "gappy", N, cameras=["F", "FL"], drop_frames={"F": [10]}, missing_actions=[25],
+                  frame_delay_ns={"FL": {30: 40_000_000}}, corrupt_frames={"FL": [5]}, stale_actions=[3])
+    r = build_dataset(raw, tmp_path / "ds", BuildParams(views=("F", "FL"), image_size=(32, 24)), contact_episodes=0)
+    d = r.summary["drops"]
+    assert d["no_action"] == 1 and d["stale_action"] == 1
+    assert d["views"]["F"] == {"missing_frame": 0, "stale_frame": 1, "bad_frame": 0}  # tick 10 found only frame 9
+    assert d["views"]["FL"] == {"missing_frame": 0, "stale_frame": 1, "bad_frame": 1}
+    assert r.summary["rows_per_view"] == {"F": N - 2, "FL": N - 3}
+    ds = load_dataset(tmp_path / "ds", split="all")
+    for i in range(len(ds)):
+        _, o_ticks, a_ticks = item_ticks(ds, i)
+        # consecutive ticks inside a chunk, apart from edge repeats
+        steps = np.diff(np.r_[o_ticks, a_ticks])
+        assert set(np.unique(np.diff(a_ticks))) <= {0, 1}, steps
+        for t in a_ticks:
+            assert t != 25
+    fl = [d for d in ds.demos if d.view == "FL"][0]
+    assert list(np.load(fl.path("ends"))) == [5, 24, 28, N - 3]  # runs 0-4, 6-24, 26-29, 31-39
+
+
+def test_rebuild_is_skipped_when_nothing_changed_and_incremental_otherwise(tmp_path):
+    raw = tmp_path / "raw"
+    for i in range(2):
+        write_episode(raw, f"ep{i}", 24, cameras=["F"], seed=i)
+    out = tmp_path / "ds"
+    params = BuildParams(views=("F",), image_size=(32, 24))
+    first = build_dataset(raw, out, params, contact_episodes=0)
+    assert (first.built, first.reused, first.up_to_date) == (2, 0, False)
+    stamp = (out / "episodes" / "ep0" / "F.frames.npy").stat().st_mtime_ns
+    again = build_dataset(raw, out, params, contact_episodes=0)
+    assert again.up_to_date and again.built == 0
+    write_episode(raw, "ep2", 24, cameras=["F"], seed=2)
+    third = build_dataset(raw, out, params, contact_episodes=0)
+    assert (third.built, third.reused) == (1, 2) and third.summary["episodes"] == 3
+    assert (out / "episodes" / "ep0" / "F.frames.npy").stat().st_mtime_ns == stamp
+    (raw / "ep1.mcap").unlink()
+    write_episode(raw, "ep1", 30, cameras=["F"], seed=5)  # same name, new content
+    fourth = build_dataset(raw, out, params, contact_episodes=0)
+    assert (fourth.built, fourth.reused) == (1, 2) and fourth.summary["ticks"] == 24 + 30 + 24
+    (raw / "ep2.mcap").unlink()
+    fifth = build_dataset(raw, out, params, contact_episodes=0)
+    assert fifth.summary["episodes"] == 2 and not (out / "episodes" / "ep2").exists()
+    changed = build_dataset(raw, out, BuildParams(views=("F",), space="base", image_size=(32, 24)),
+                            contact_episodes=0)
+    assert changed.built == 2  # another action space reshapes every episode's arrays
+
+
+def test_a_failed_build_leaves_no_dataset_that_looks_complete(tmp_path):
+    raw = tmp_path / "raw"
+    write_episode(raw, "ep0", 24, cameras=["F"])
+    out = tmp_path / "ds"
+    build_dataset(raw, out, BuildParams(views=("F",), image_size=(32, 24)), contact_episodes=0)
+    assert len(load_dataset(out, split="all")) > 0
+    bad = write_episode(raw, "ep1", 24, cameras=["F"])
+    data = bad.read_bytes()
+    bad.write_bytes(data[: len(data) // 2] + b"\x00" * 64 + data[len(data) // 2 + 64:])  # damage a chunk
+    with pytest.raises(EpisodeError, match="ep1.mcap"):
+        build_dataset(raw, out, BuildParams(views=("F",), image_size=(32, 24)), contact_episodes=0)
+    with pytest.raises(DatasetError, match="not a complete dataset"):
+        load_dataset(out)
+    assert not list((out / "episodes").glob(".tmp-*"))
+    # --skip-bad builds from what is readable and says what it skipped
+    r = build_dataset(raw, out, BuildParams(views=("F",), image_size=(32, 24)), skip_bad=True, contact_episodes=0)
+    assert r.summary["episodes"] == 1 and "ep1.mcap" in r.summary["skipped_episodes"][0]["error"]
+    assert len(load_dataset(out, split="all")) > 0
+
+
+def test_bad_input_gets_a_clear_error_naming_the_file_or_view(tmp_path):
+    raw = tmp_path / "raw"
+    write_episode(raw, "nocal", 24, cameras=["F", "FL"], no_calibration=["FL"])
+    out = tmp_path / "ds"
+    with pytest.raises(EpisodeError, match=r"nocal\.mcap.*'FL'.*calibration"):
+        build_dataset(raw, out, BuildParams(views=("F", "FL"), space="camera", image_size=(32, 24)))
+    # base space does not need the calibration
+    r = build_dataset(raw, out, BuildParams(views=("F", "FL"), space="base", image_size=(32, 24)))
+    assert r.summary["pseudo_demos"] == 2
+    with pytest.raises(EpisodeError, match=r"nocal\.mcap.*'FX'.*F, FL"):
+        build_dataset(raw, tmp_path / "x", BuildParams(views=("FX",), image_size=(32, 24)))
+    with pytest.raises(DatasetError, match="empty view selection"):
+        BuildParams(views=())
+    with pytest.raises(DatasetError, match="does not exist"):
+        build_dataset(tmp_path / "nowhere", out, BuildParams(views=("F",)))
+    with pytest.raises(DatasetError, match="no episode files"):
+        (tmp_path / "empty").mkdir()
+        build_dataset(tmp_path / "empty", out, BuildParams(views=("F",)))
+    (tmp_path / "junk.mcap").write_bytes(b"not an mcap at all")
+    with pytest.raises(EpisodeError, match="junk.mcap"):
+        build_dataset([tmp_path / "junk.mcap"], tmp_path / "y", BuildParams(views=("F",)))
+    with pytest.raises(DatasetError, match="does not exist"):
+        load_dataset(tmp_path / "nothing")
+
+
+def test_split_is_by_episode_deterministic_and_disjoint(camera_ds):
+    train = load_dataset(camera_ds, split="train", val_fraction=0.34)
+    val = load_dataset(camera_ds, split="val", val_fraction=0.34)
+    assert set(train.episode_ids) | set(val.episode_ids) == {"ep000", "ep001", "ep002"}
+    assert not set(train.episode_ids) & set(val.episode_ids) and len(val.episode_ids) == 1
+    assert load_dataset(camera_ds, split="val", val_fraction=0.34).episode_ids == val.episode_ids
+    assert {d.episode_id for d in val.demos} == set(val.episode_ids)
+    ids = [f"e{i}" for i in range(50)]
+    tr, va = split_episodes(ids, 0.2, seed=1)
+    assert len(va) == 10 and split_episodes(list(reversed(ids)), 0.2, seed=1)[1] == sorted(va, key=ids.index)[::-1]
+
+
+def test_cli_build_and_info(raw_dir, tmp_path, capsys):
+    out = tmp_path / "cli"
+    rc = viewscale(["dataset", "build", "--raw", str(raw_dir), "--views", "F,FR", "--space", "camera",
+                    "--out", str(out), "--image-size", "32x24", "--contact-episodes", "1"])
+    cap = capsys.readouterr()
+    assert rc == 0
+    assert "[3/3] ep002.mcap" in cap.err  # per-episode progress
+    assert "pseudo-demos" in cap.out and (out / "contact_sheet.png").is_file()
+    assert viewscale(["dataset", "info", str(out)]) == 0
+    info = capsys.readouterr().out
+    assert "episodes      3" in info and "F, FR" in info and "pos_scale" in info
+    assert viewscale(["dataset", "info", str(out), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["samples"] > 0
+    for argv, needle in ((["--views", "F,NOPE"], "'NOPE'"), (["--views", ","], "empty view selection")):
+        rc = viewscale(["dataset", "build", "--raw", str(raw_dir), "--out", str(tmp_path / "bad"), *argv])
+        err = capsys.readouterr().err
+        last = err.strip().splitlines()[-1]
+        assert rc == 2 and needle in last and last.startswith("error:") and "Traceback" not in err
+    assert viewscale(["dataset", "info", str(tmp_path / "bad")]) == 2
+    assert "not a complete dataset" in capsys.readouterr().err
