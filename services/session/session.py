@@ -3,8 +3,9 @@
 Per attempt: sim RESET (task, seed) -> recorder START -> sim RUN -> watch the task state until
 success has held for ``settle_ticks`` or the tick limit -> sim PAUSE (the sim completes its tick,
 so observations == applied actions) -> recorder STOP with the tick count on success, DISCARD on
-failure (the failure is reported, and the next seed is tried). Everything goes over Zenoh
-queries; a service that disappears mid-episode stops the session with a clear error.
+an expert failure (reported; the next seed is tried). Everything goes over Zenoh queries; a
+service that disappears mid-episode stops the session with a clear error, and the partial
+episode is kept, closed as failed and flagged, never deleted.
 """
 
 from __future__ import annotations
@@ -143,12 +144,14 @@ class Session:
             self._sim(SimCommand.SIM_COMMAND_RUN)
             self._wait_done(self.cfg.tick_limit())
             paused = self._sim(SimCommand.SIM_COMMAND_PAUSE)
-        except BaseException:
-            # Whatever went wrong, do not leave a half episode that looks recorded.
+        except BaseException as exc:
+            # Close what was recorded as a failed episode (the recorder flags it) rather than
+            # deleting it: an infrastructure fault must not silently lose data.
             try:
-                self._recorder(EpisodeCommand.EPISODE_COMMAND_DISCARD, episode_id=episode_id)
-            except Exception as exc:
-                log.warning("could not discard %s: %s", episode_id, exc)
+                reply = self._recorder(EpisodeCommand.EPISODE_COMMAND_STOP, episode_id=episode_id, success=False)
+                self.progress(f"episode {episode_id} interrupted ({exc}); kept as failed: {reply.meta.path}")
+            except Exception as stop_exc:
+                log.warning("could not close interrupted episode %s: %s", episode_id, stop_exc)
             raise
         seconds = time.monotonic() - t0
         attempt = Attempt(seed, episode_id, paused.success, int(paused.ticks), seconds)
