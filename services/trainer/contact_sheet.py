@@ -129,7 +129,7 @@ def contact_sheet(ds_dir: Path, meta: dict[str, Any], max_episodes: int = 3, til
     rows = []
     for v in meta["views"]:
         tiles = []
-        for e in meta["episodes"][:max_episodes]:
+        for ei, e in enumerate(meta["episodes"][:max_episodes]):
             d = ds_dir / "episodes" / e["dir"]
             calib = e["views"][v]["calib"]
             frames = np.load(d / f"{v}.frames.npy", mmap_mode="r")
@@ -137,7 +137,7 @@ def contact_sheet(ds_dir: Path, meta: dict[str, Any], max_episodes: int = 3, til
             if n == 0:
                 blank = np.zeros((tile[1], tile[0], 3), np.uint8)
                 tiles += [draw_tile(blank, 0, np.zeros((0, 3)), np.zeros((0, 3)), None, Tp, None,
-                                    f"{e['id']} {v}: no frames", tile)] * 3
+                                    f"{v} #{ei}: no frames", tile)] * 3
                 continue
             state, action = np.load(d / f"{v}.state.npy"), np.load(d / f"{v}.action.npy")
             tick, ends = np.load(d / f"{v}.tick.npy"), np.load(d / f"{v}.ends.npy")
@@ -152,13 +152,15 @@ def contact_sheet(ds_dir: Path, meta: dict[str, Any], max_episodes: int = 3, til
             for r in (0, n // 2, n - 1):
                 tiles.append(draw_tile(frames[r], r, pos_cam if pos_cam is not None else np.zeros((0, 3)),
                                        path if path is not None else np.zeros((0, 3)), K, Tp, axes_cam,
-                                       f"{e['id']} {v} t={int(tick[r])}", tile))
+                                       f"{v}  t={int(tick[r])}  #{ei}", tile))
         rows.append(np.hstack(tiles))
     sheet = np.vstack(rows)
-    legend = np.zeros((LABEL_H + 4, sheet.shape[1], 3), np.uint8)
-    text = (f"space={space} state={state_frame}  white: state path  cyan: action path  magenta: next Tp  "
-            f"axes: base x/y/z")
-    cv2.putText(legend, text, (3, LABEL_H - 3), cv2.FONT_HERSHEY_SIMPLEX, 0.4, WHITE, 1, cv2.LINE_AA)
+    lines = [f"space={space} state={state_frame}  white: state path  cyan: action path  magenta: next Tp  "
+             f"axes: base x/y/z (10 cm)"]
+    lines += [f"#{ei} {e['id']}" for ei, e in enumerate(meta["episodes"][:max_episodes])]
+    legend = np.zeros((LABEL_H * len(lines) + 4, sheet.shape[1], 3), np.uint8)
+    for li, text in enumerate(lines):
+        cv2.putText(legend, text, (3, LABEL_H * (li + 1) - 3), cv2.FONT_HERSHEY_SIMPLEX, 0.4, WHITE, 1, cv2.LINE_AA)
     return np.vstack([legend, sheet])
 
 
