@@ -23,6 +23,9 @@ from services.session.config import SessionConfig
 from services.session.session import Session, SessionError, SessionResult, summary
 
 
+MODULES = {"recorder": "services.recorder", "sim": "sim", "teleop": "services.teleop"}  # service -> module
+
+
 class CollectError(RuntimeError):
     pass
 
@@ -62,29 +65,42 @@ class LocalStack:
         self.log_dir.mkdir(parents=True, exist_ok=True)
         self._router = router([self.endpoint])
         try:
-            for name, module in (("recorder", "services.recorder"), ("sim", "sim"), ("teleop", "services.teleop")):
-                self._start(name, module)
-            self._wait_ready()
+            self._wait_ready([self._start(name) for name in MODULES])
         except BaseException:
             self.__exit__()
             raise
         return self
 
-    def _start(self, name: str, module: str) -> None:
-        cmd = [sys.executable, "-m", module]
+    def _start(self, name: str) -> Child:
+        cmd = [sys.executable, "-m", MODULES[name]]
         if self.config:
             cmd += ["--config", self.config]
         for item in [f"bus.mode=client", f"bus.connect=[{self.endpoint}]", *self.overrides.get(name, [])]:
             cmd += ["--set", item]
         log_path = self.log_dir / f"{name}.log"
         env = dict(os.environ, MUJOCO_GL=os.environ.get("MUJOCO_GL", "egl"), PYTHONUNBUFFERED="1")
-        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=open(log_path, "w"), env=env, text=True)
-        self.children.append(Child(name, proc, log_path))
+        with open(log_path, "a") as log_file:  # append: a restarted service keeps its history
+            log_file.write(f"--- {time.strftime('%Y-%m-%d %H:%M:%S')} {' '.join(cmd)}\n")
+            log_file.flush()
+            proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=log_file, env=env, text=True)
+        child = Child(name, proc, log_path)
+        self.children.append(child)
+        return child
 
-    def _wait_ready(self) -> None:
-        pending = {c.proc.stdout.fileno(): c for c in self.children}
+    def restart(self, name: str, kill: bool = True) -> None:
+        """Kill (SIGKILL) a service and start it again; returns once it is ready."""
+        old = next(c for c in self.children if c.name == name)
+        if kill:
+            old.proc.kill()
+        old.proc.wait()
+        old.proc.stdout.close()
+        self.children.remove(old)
+        self._wait_ready([self._start(name)])
+
+    def _wait_ready(self, children: list[Child]) -> None:
+        pending = {c.proc.stdout.fileno(): c for c in children}
         sel = selectors.DefaultSelector()
-        for child in self.children:
+        for child in children:
             sel.register(child.proc.stdout, selectors.EVENT_READ, child)
         deadline = time.monotonic() + self.ready_timeout_s
         while pending:

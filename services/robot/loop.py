@@ -88,26 +88,34 @@ class ControlLoop:
         self._gripper = 0.0
         self._seq = 0
         self._cv = threading.Condition()
-        self._latest: EefCommand | None = None
+        self._latest: tuple[int, EefDelta] | None = None  # (tick, validated action)
         self._state_pub = bus.publisher(topics.ROBOT_STATE)
         self._applied_pub = bus.publisher(topics.APPLIED_ACTION)
         bus.subscribe(topics.COMMAND, self._on_command, on_error=self._on_malformed)
 
     # -- commands (zenoh thread) --------------------------------------------------------
-    def _on_command(self, msg: EefCommand, _rx: Received) -> None:
+    def _on_command(self, msg: EefCommand, rx: Received) -> None:
+        # Validate on arrival: a bad command (a payload of another schema can parse as an
+        # EefCommand) is counted and dropped, and cannot displace the tick's good command.
+        try:
+            delta = action_from_msg(msg.action)
+        except ValueError as exc:
+            self.rejected["invalid"] += 1
+            log.warning("rejected command on %s for tick %d: %s", rx.key, msg.tick, exc)
+            return
         with self._cv:
-            self._latest = msg
+            self._latest = (msg.tick, delta)
             self._cv.notify_all()
 
     def _on_malformed(self, rx: Received, exc: Exception) -> None:
         self.rejected["malformed"] += 1
         log.warning("malformed payload on %s (%d bytes): %s", rx.key, len(rx.payload), exc)
 
-    def _wait_command(self, tick: int, deadline: float) -> EefCommand | None:
+    def _wait_command(self, tick: int, deadline: float) -> EefDelta | None:
         with self._cv:
             while True:
-                if self._latest is not None and self._latest.tick == tick:
-                    return self._latest
+                if self._latest is not None and self._latest[0] == tick:
+                    return self._latest[1]
                 remaining = deadline - time.monotonic()
                 if remaining <= 0:
                     return None
@@ -136,14 +144,7 @@ class ControlLoop:
     def act(self, t0: float) -> None:
         """Wait for the tick's command, execute it (or hold), publish what ran."""
         wait = self.command_wait_fraction / self.control_hz if self.realtime else self.command_timeout_s
-        cmd = self._wait_command(self.tick, t0 + wait)
-        delta = None
-        if cmd is not None:
-            try:
-                delta = action_from_msg(cmd.action)
-            except ValueError as exc:
-                self.rejected["invalid"] += 1
-                log.warning("rejected command for tick %d: %s", self.tick, exc)
+        delta = self._wait_command(self.tick, t0 + wait)
         stale = delta is None
         if stale:
             self.stale_ticks += 1

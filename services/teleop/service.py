@@ -62,12 +62,20 @@ class TeleopService:
         self.malformed[rx.key] += 1
         log.warning("malformed payload on %s (%d bytes): %s", rx.key, len(rx.payload), exc)
 
-    def _on_state(self, msg: RobotState, _rx: Received) -> None:
+    def _on_state(self, msg: RobotState, rx: Received) -> None:
+        if len(msg.eef_pos) != 3 or len(msg.eef_quat_wxyz) != 4:
+            # Another schema's payload can parse as a RobotState; it must not drive the arm.
+            self._on_malformed(rx, ValueError(f"robot state with {len(msg.eef_pos)} position and "
+                                              f"{len(msg.eef_quat_wxyz)} quaternion values"))
+            return
         with self._cv:
             self._state = msg
             self._cv.notify_all()
 
-    def _on_task(self, msg: TaskState, _rx: Received) -> None:
+    def _on_task(self, msg: TaskState, rx: Received) -> None:
+        if not msg.task or any(len(o.pos) != 3 or len(o.quat_wxyz) != 4 for o in msg.objects):
+            self._on_malformed(rx, ValueError("task state without a task or with malformed object poses"))
+            return
         with self._cv:
             self._tasks[(msg.episode_id, msg.tick)] = msg
             while len(self._tasks) > 64:

@@ -1,0 +1,119 @@
+"""Faults during a live collection session: garbage on every topic, a sim killed mid-episode."""
+
+from __future__ import annotations
+
+import threading
+
+import pytest
+from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
+
+from services.collect import LocalStack
+from services.core import topics
+from services.core.bus import Bus
+from services.pb.episode_pb2 import (
+    EpisodeCommand, EpisodeReply, EpisodeRequest, SimCommand, SimControlReply, SimControlRequest,
+)
+from services.pb.sensors_pb2 import RobotState, TaskState
+from services.recorder.reader import read_episode
+
+RIG = ["F", "FL", "FR"]
+
+
+@pytest.fixture
+def stack(tmp_path):
+    overrides = {"sim": ["rig=three15", "realtime=false"], "recorder": [f"out_dir={tmp_path}"], "teleop": []}
+    with LocalStack(tmp_path, None, overrides) as s:
+        yield s
+
+
+def sim(bus: Bus, command, **kw) -> SimControlReply:
+    reply = SimControlReply.FromString(
+        bus.query(topics.SIM_CONTROL, SimControlRequest(command=command, **kw).SerializeToString(), 30))
+    assert reply.ok, reply.error
+    return reply
+
+
+def recorder(bus: Bus, command, **kw) -> EpisodeReply:
+    reply = EpisodeReply.FromString(
+        bus.query(topics.EPISODE_CONTROL, EpisodeRequest(command=command, **kw).SerializeToString(), 60))
+    assert reply.ok, reply.error
+    return reply
+
+
+def wait_for_tick(bus: Bus, episode_id: str, tick: int, until_success: bool = False) -> None:
+    cv = threading.Condition()
+    seen = {"tick": -1, "success": False}
+
+    def on_task(msg: TaskState, _rx):
+        if msg.episode_id == episode_id:
+            with cv:
+                seen["tick"], seen["success"] = msg.tick, msg.success
+                cv.notify_all()
+
+    bus.subscribe(topics.TASK_STATE, on_task)
+    with cv:
+        ok = cv.wait_for(lambda: seen["tick"] >= tick and (seen["success"] or not until_success), timeout=120)
+    assert ok, f"episode {episode_id} stuck at tick {seen['tick']}"
+
+
+def test_garbage_on_every_topic_is_counted_and_loses_no_good_data(stack):
+    with Bus(stack.bus_config()) as bus:
+        bus.wait_alive(["sim", "teleop", "recorder"], timeout=60)
+        sim(bus, SimCommand.SIM_COMMAND_RESET, task="lift", seed=3, episode_id="garbage")
+        recorder(bus, EpisodeCommand.EPISODE_COMMAND_START, episode_id="garbage", task="lift", seed=3,
+                 rig="three15", control_hz=20)
+        sim(bus, SimCommand.SIM_COMMAND_RUN)
+        wait_for_tick(bus, "garbage", 3)
+        raw = {t.key: bus.session.declare_publisher(bus.key(t.key)) for t in topics.session_topics(RIG)}
+        bad_jpeg = CompressedImage(frame_id="F", format="jpeg", data=b"\xff\xd8 not really a jpeg").SerializeToString()
+        wrong_schema = RobotState(eef_pos=[1, 2]).SerializeToString()
+        for key, pub in raw.items():
+            pub.put(b"\x0a\xff\xff\xff\xff")  # truncated length-delimited field
+            pub.put(wrong_schema if "image" not in key else bad_jpeg)
+        bad_sim = SimControlReply.FromString(bus.query(topics.SIM_CONTROL, b"\xff\xff", 10))
+        assert not bad_sim.ok and "malformed" in bad_sim.error
+        bad_req = EpisodeReply.FromString(bus.query(topics.EPISODE_CONTROL, b"\xff\xff", 10))
+        assert not bad_req.ok
+        wait_for_tick(bus, "garbage", 4, until_success=True)
+        ticks = sim(bus, SimCommand.SIM_COMMAND_PAUSE).ticks
+        meta = recorder(bus, EpisodeCommand.EPISODE_COMMAND_STOP, episode_id="garbage", success=True, ticks=ticks).meta
+    stack.check_alive()  # nothing crashed
+    ep = read_episode(meta.path)
+    assert meta.malformed.get("/camera/F/image", meta.malformed.get("camera/F/image", 0)) >= 1
+    assert sum(meta.malformed.values()) >= len(topics.session_topics(RIG))
+    for name in RIG:  # every good frame is there
+        assert len(ep.messages(f"/camera/{name}/image")) == ticks
+    assert [r.msg.tick for r in ep.messages("/robot/state")] == list(range(ticks))
+    assert not any(r.msg.stale for r in ep.messages("/robot/applied")), "a bad command displaced a good one"
+    assert "malformed payload on teleop/command" in (stack.log_dir / "sim.log").read_text()
+    assert "robot/state" in (stack.log_dir / "teleop.log").read_text()
+
+
+def test_sim_killed_mid_episode_flags_it_and_the_recorder_carries_on(stack):
+    with Bus(stack.bus_config()) as bus:
+        bus.wait_alive(["sim", "teleop", "recorder"], timeout=60)
+        sim(bus, SimCommand.SIM_COMMAND_RESET, task="lift", seed=5, episode_id="crash")
+        recorder(bus, EpisodeCommand.EPISODE_COMMAND_START, episode_id="crash", task="lift", seed=5,
+                 rig="three15", control_hz=20)
+        sim(bus, SimCommand.SIM_COMMAND_RUN)
+        wait_for_tick(bus, "crash", 5)
+        stack.restart("sim")  # SIGKILL, then a fresh sim process
+        bus.wait_alive(["sim"], timeout=60)
+        sim(bus, SimCommand.SIM_COMMAND_RESET, task="lift", seed=5, episode_id="crash")
+        sim(bus, SimCommand.SIM_COMMAND_RUN)
+        wait_for_tick(bus, "crash", 3)
+        sim(bus, SimCommand.SIM_COMMAND_PAUSE)
+        meta = recorder(bus, EpisodeCommand.EPISODE_COMMAND_STOP, episode_id="crash", success=False).meta
+        assert meta.flags, "a sim restart mid-episode must flag the episode"
+        assert any("sim" in f for f in meta.flags), list(meta.flags)
+        # The recorder is still fully usable for the next episode.
+        sim(bus, SimCommand.SIM_COMMAND_RESET, task="lift", seed=6, episode_id="after")
+        recorder(bus, EpisodeCommand.EPISODE_COMMAND_START, episode_id="after", task="lift", seed=6,
+                 rig="three15", control_hz=20)
+        sim(bus, SimCommand.SIM_COMMAND_RUN)
+        wait_for_tick(bus, "after", 3, until_success=True)
+        ticks = sim(bus, SimCommand.SIM_COMMAND_PAUSE).ticks
+        after = recorder(bus, EpisodeCommand.EPISODE_COMMAND_STOP, episode_id="after", success=True, ticks=ticks).meta
+    stack.check_alive()
+    assert read_episode(meta.path).metadata["flags"]
+    assert after.frames["F"] == ticks and not after.flags
