@@ -1,0 +1,5 @@
+"""The recorder service: session topics into one MCAP file per episode.
+
+``service`` (the process), ``writer`` (file layout and crash bound), ``reader`` (``read_episode``),
+``recover`` (partial files), ``validate`` (what counts as a malformed payload).
+"""

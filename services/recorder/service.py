@@ -1,0 +1,577 @@
+"""The recorder: every session topic into one MCAP file per episode, never blocking a publisher.
+
+Threads and ownership:
+- zenoh callbacks only route a sample into its channel's bounded queue (``put_nowait``); a full
+  queue drops the sample and counts it. Outside an episode only calibration and pose are queued
+  (they are cached so each episode file starts self-contained).
+- one writer thread owns everything else: it validates payloads (``validate.parse``), keeps the
+  episode's counters, writes the file, and runs episode commands. The control queryable posts
+  START/STOP/DISCARD/STATUS to it and waits for the answer, so the file has a single writer and a
+  STOP never races a message that arrived before it.
+- liveliness changes of other services are queued as events and flag the open episode.
+
+STOP waits (up to ``stop_grace_s``) until the file holds the ``ticks`` robot states and frames
+the source says it published, then writes what is queued, the metadata, and closes. SIGTERM
+(``close``) writes what is queued and closes the open episode flagged ``interrupted``.
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+import time
+from collections import Counter
+from concurrent.futures import Future
+from concurrent.futures import TimeoutError as FutureTimeout
+from pathlib import Path
+from typing import Callable
+
+from google.protobuf.message import DecodeError, Message
+
+from services.core.bus import Bus, Received
+from services.core.clock import now_ns
+from services.core.topics import EPISODE, EPISODE_CONTROL, ROBOT_STATE, Topic, topic_for_key
+from services.pb.episode_pb2 import (
+    EPISODE_COMMAND_DISCARD,
+    EPISODE_COMMAND_START,
+    EPISODE_COMMAND_STATUS,
+    EPISODE_COMMAND_STOP,
+    EpisodeMeta,
+    EpisodeReply,
+    EpisodeRequest,
+)
+from services.recorder.config import RecorderConfig
+from services.recorder.validate import MalformedPayload, capture_ns, header_of, parse
+from services.recorder.writer import (
+    EPISODE_CHANNEL,
+    EPISODE_RECORD,
+    PART_SUFFIX,
+    START_RECORD,
+    EpisodeWriter,
+    episode_path,
+    meta_to_record,
+    start_record,
+)
+
+log = logging.getLogger(__name__)
+
+INTERRUPTED = "interrupted"
+_BATCH = 32  # items taken from one channel queue per round, so no channel starves the others
+_LOG_FIRST = 3  # malformed payloads logged in full per topic and episode; then every 100th
+# Cameras republish calibration at ~1 Hz: one cached longer than this before START is from a
+# camera that may be gone, so it does not make the episode expect frames from that camera.
+_FRESH_CALIBRATION_NS = 5_000_000_000
+
+
+def _is_calibration(key: str) -> bool:
+    return key.startswith("camera/") and (key.endswith("/calibration") or key.endswith("/pose"))
+
+
+def _camera_of(key: str) -> str:
+    return key.split("/")[1]
+
+
+def _fmt(counts: dict[str, int]) -> str:
+    return ", ".join(f"{k} {v}" for k, v in sorted(counts.items()))
+
+
+class _Episode:
+    """Counters of the open episode (touched by the writer thread only)."""
+
+    def __init__(self, req: EpisodeRequest, writer: EpisodeWriter, start_ns: int):
+        self.meta = EpisodeMeta(episode_id=req.episode_id, task=req.task, seed=req.seed, rig=req.rig,
+                                control_hz=req.control_hz, start_ns=start_ns, path=str(writer.path))
+        self.writer = writer
+        self.start_ns = start_ns
+        self.written: Counter[str] = Counter()  # key -> messages written
+        self.malformed: Counter[str] = Counter()
+        self.gaps: Counter[str] = Counter()  # key -> sequence discontinuities
+        self.resets: Counter[str] = Counter()  # key -> times the sequence went back (publisher restart)
+        self.missing: Counter[str] = Counter()  # key -> messages skipped by forward sequence jumps
+        self.last_seq: dict[str, int] = {}
+        self.cameras: set[str] = set()
+        self.state_n = 0
+        self.state_first = 0
+        self.state_last = 0
+        self.events: list[str] = []  # flags from liveliness and errors, in order
+        self.left: set[str] = set()  # services that lost liveliness during the episode
+        self.error = ""  # a write error: nothing more is written
+
+    def note(self, flag: str) -> None:
+        if flag not in self.events:
+            self.events.append(flag)
+
+    @property
+    def achieved_hz(self) -> float:
+        if self.state_n < 2 or self.state_last <= self.state_first:
+            return 0.0
+        return (self.state_n - 1) * 1e9 / (self.state_last - self.state_first)
+
+
+class Recorder:
+    """Context manager: subscribes, serves episode control and writes until closed."""
+
+    def __init__(self, cfg: RecorderConfig, bus: Bus, name: str = "recorder"):
+        self.cfg = cfg
+        self.bus = bus
+        self.name = name
+        self.out_dir = Path(cfg.out_dir)
+        self._queues: dict[str, queue.Queue[Received]] = {}
+        self._topics: dict[str, Topic | None] = {}
+        self._recording = False  # read by zenoh callbacks: queue every topic, not just calibration
+        self._drops: Counter[str] = Counter()
+        self._drop_lock = threading.Lock()
+        self._unknown: Counter[str] = Counter()
+        self._idle_malformed: Counter[str] = Counter()
+        self._calibration: dict[str, tuple[Received, Message]] = {}  # key -> latest good sample
+        self._commands: queue.SimpleQueue[tuple[Callable[[], EpisodeReply | None], Future]] = queue.SimpleQueue()
+        self._alive_events: queue.SimpleQueue[tuple[str, bool, int]] = queue.SimpleQueue()
+        self._wake = threading.Event()
+        self._halt = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="recorder-writer", daemon=True)
+        self._episode: _Episode | None = None
+        self._stopping: tuple[EpisodeRequest, Future, float] | None = None  # STOP waiting for its ticks
+        self._last_meta = EpisodeMeta()  # the last closed episode, for STATUS when idle
+        self._publisher = None
+
+    # -- lifecycle --------------------------------------------------------------------------
+    def __enter__(self) -> "Recorder":
+        self.out_dir.mkdir(parents=True, exist_ok=True)
+        for part in sorted(self.out_dir.glob("*.mcap" + PART_SUFFIX)):
+            log.warning("partial episode %s from an earlier run; recover it with "
+                        "`python -m services.recorder.recover %s`", part, part)
+        self._publisher = self.bus.publisher(EPISODE)
+        self._thread.start()
+        self.bus.subscribe_raw("**", self._on_sample)
+        self.bus.queryable(EPISODE_CONTROL, self._on_control)
+        self.bus.watch_alive(self._on_alive)
+        # Announce last: whoever sees the token can rely on the subscription being in place.
+        self.bus.announce(self.name)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    @property
+    def cached_calibration(self) -> list[str]:
+        """Keys of the calibration and pose samples cached for the next episode's start."""
+        return sorted(self._calibration)
+
+    def run(self, stop: threading.Event) -> None:
+        stop.wait()
+
+    def close(self) -> None:
+        """Write everything queued and close the open episode (flagged interrupted if not stopped)."""
+        if not self._thread.is_alive():
+            return
+        self._halt.set()
+        self._wake.set()
+        self._thread.join()
+        # The writer thread is gone: this thread is now the only one touching the episode.
+        self._run_commands()
+        if self._stopping is not None:
+            req, fut, _ = self._stopping
+            self._stopping = None
+            fut.set_result(self._finish_stop(req))
+        elif self._episode is not None:
+            ep = self._episode
+            log.warning("closing episode %s before STOP: flagged %s", ep.meta.episode_id, INTERRUPTED)
+            ep.note(f"{INTERRUPTED}: the recorder was stopped before the episode's STOP")
+            self._close_episode(success=False, ticks=0)
+
+    # -- zenoh callbacks: enqueue only ------------------------------------------------------
+    def _on_sample(self, rx: Received) -> None:
+        key = rx.key
+        q = self._queues.get(key)
+        if q is None:
+            topic = self._topics.get(key)
+            if topic is None and key not in self._topics:
+                topic = topic_for_key(key)
+                self._topics[key] = None if topic is None or topic.key == EPISODE.key else topic
+                topic = self._topics[key]
+            if topic is None:
+                self._unknown[key] += 1
+                if self._unknown[key] == 1:
+                    log.debug("ignoring key outside the session graph: %s", key)
+                return
+            q = self._queues.setdefault(key, queue.Queue(self.cfg.queue_size))
+        if not self._recording and not _is_calibration(key):
+            return
+        try:
+            q.put_nowait(rx)
+        except queue.Full:
+            with self._drop_lock:
+                self._drops[key] += 1
+                n = self._drops[key]
+            if n == 1 or n % 100 == 0:
+                log.warning("recorder cannot keep up: %d samples dropped on %s (queue of %d full)",
+                            n, key, self.cfg.queue_size)
+            return
+        self._wake.set()
+
+    def _on_alive(self, service: str, alive: bool) -> None:
+        if service != self.name:
+            self._alive_events.put((service, alive, now_ns()))
+            self._wake.set()
+
+    def _on_control(self, payload: bytes) -> bytes:
+        try:
+            req = EpisodeRequest.FromString(payload)
+        except DecodeError as exc:
+            return EpisodeReply(ok=False, error=f"malformed EpisodeRequest ({len(payload)} bytes): {exc}",
+                                recording=self._recording).SerializeToString()
+        return self.request(req).SerializeToString()
+
+    # -- control ----------------------------------------------------------------------------
+    def request(self, req: EpisodeRequest, timeout: float | None = None) -> EpisodeReply:
+        """Run one episode command on the writer thread and return its reply (never raises)."""
+        handlers = {
+            EPISODE_COMMAND_START: self._start,
+            EPISODE_COMMAND_STOP: self._stop,
+            EPISODE_COMMAND_DISCARD: self._discard,
+            EPISODE_COMMAND_STATUS: self._status,
+        }
+        handler = handlers.get(req.command)
+        if handler is None:
+            return EpisodeReply(ok=False, error=f"unknown episode command {req.command}", recording=self._recording)
+        if self._halt.is_set():
+            return EpisodeReply(ok=False, error="recorder is shutting down", recording=self._recording)
+        fut: Future = Future()
+        self._commands.put((lambda: handler(req, fut), fut))
+        self._wake.set()
+        wait = timeout if timeout is not None else self.cfg.stop_grace_s + 30.0
+        try:
+            return fut.result(timeout=wait)
+        except FutureTimeout:
+            return EpisodeReply(ok=False, error=f"recorder did not answer within {wait:.0f}s",
+                                recording=self._recording)
+        except Exception as exc:
+            log.exception("episode command %s failed", req.command)
+            return EpisodeReply(ok=False, error=f"{type(exc).__name__}: {exc}", recording=self._recording)
+
+    def _error(self, text: str) -> EpisodeReply:
+        return EpisodeReply(ok=False, error=text, recording=self._episode is not None)
+
+    def _check_id(self, req: EpisodeRequest) -> EpisodeReply | None:
+        ep = self._episode
+        if ep is None:
+            return self._error("not recording")
+        if req.episode_id and req.episode_id != ep.meta.episode_id:
+            return self._error(f"unknown episode id {req.episode_id!r} (recording {ep.meta.episode_id!r})")
+        return None
+
+    def _start(self, req: EpisodeRequest, fut: Future) -> EpisodeReply:
+        if self._episode is not None:
+            return self._error(f"already recording episode {self._episode.meta.episode_id!r}; STOP or DISCARD it first")
+        try:
+            path = episode_path(self.out_dir, req.episode_id)
+        except ValueError as exc:
+            return self._error(str(exc))
+        part = path.with_name(path.name + PART_SUFFIX)
+        if path.exists() or part.exists():
+            return self._error(f"episode {req.episode_id!r} already exists at {path if path.exists() else part}")
+        start_ns = now_ns()
+        try:
+            writer = EpisodeWriter(path, self.cfg.chunk_size, self.cfg.flush_interval_s)
+        except OSError as exc:
+            return self._error(f"cannot create {part}: {exc}")
+        with self._drop_lock:
+            self._drops.clear()
+        ep = _Episode(req, writer, start_ns)
+        try:
+            writer.add_metadata(START_RECORD, start_record(ep.meta))
+        except OSError as exc:
+            writer.abort()
+            return self._error(f"cannot write {part}: {exc}")
+        self._episode = ep
+        self._recording = True
+        for key, (rx, msg) in sorted(self._calibration.items()):
+            self._write(ep, key, rx, msg)
+        # Stale ones are written for completeness, but the camera may be gone: expect no frames from it.
+        ep.cameras = {_camera_of(key) for key, (rx, _) in self._calibration.items()
+                      if start_ns - rx.receive_ns <= _FRESH_CALIBRATION_NS}
+        log.info("episode %s started: task %s seed %d rig %s at %.1f Hz -> %s", req.episode_id, req.task, req.seed,
+                 req.rig, req.control_hz, writer.part_path)
+        return EpisodeReply(ok=True, recording=True, meta=self._meta(ep))
+
+    def _stop(self, req: EpisodeRequest, fut: Future) -> EpisodeReply | None:
+        bad = self._check_id(req)
+        if bad is not None:
+            return bad
+        if self._stopping is not None:
+            return self._error("a STOP is already in progress")
+        # Answered later by _poll_stop, once the ticks are in or the grace period is over.
+        self._stopping = (req, fut, time.monotonic() + self.cfg.stop_grace_s)
+        self._poll_stop()
+        return None
+
+    def _poll_stop(self) -> None:
+        if self._stopping is None:
+            return
+        req, fut, deadline = self._stopping
+        ep = self._episode
+        if ep is not None and not self._has_ticks(ep, req.ticks) and time.monotonic() < deadline:
+            return
+        self._stopping = None
+        fut.set_result(self._finish_stop(req))
+
+    def _has_ticks(self, ep: _Episode, ticks: int) -> bool:
+        """Every robot state and frame of ``ticks`` is accounted for: written or dropped."""
+        with self._drop_lock:
+            drops = dict(self._drops)
+
+        # Malformed samples do not count: they may be extra, and then good ticks are still on the way.
+        def seen(key: str) -> int:
+            return ep.written[key] + drops.get(key, 0)
+
+        return seen(ROBOT_STATE.key) >= ticks and all(seen(f"camera/{c}/image") >= ticks for c in ep.cameras)
+
+    def _finish_stop(self, req: EpisodeRequest) -> EpisodeReply:
+        if self._episode is None:  # discarded meanwhile
+            return self._error("episode was discarded before STOP completed")
+        return self._close_episode(success=req.success, ticks=req.ticks)
+
+    def _discard(self, req: EpisodeRequest, fut: Future) -> EpisodeReply:
+        ep = self._episode
+        if ep is None:
+            # Not recording: discard a finished episode's file.
+            try:
+                path = episode_path(self.out_dir, req.episode_id)
+            except ValueError as exc:
+                return self._error(str(exc))
+            if not path.exists():
+                return self._error(f"unknown episode id {req.episode_id!r}: no {path}")
+            path.unlink()
+            log.info("episode %s discarded: deleted %s", req.episode_id, path)
+            return EpisodeReply(ok=True, recording=False)
+        bad = self._check_id(req)
+        if bad is not None:
+            return bad
+        if self._stopping is not None:
+            _, stop_fut, _ = self._stopping
+            self._stopping = None
+            stop_fut.set_result(self._error("episode was discarded before STOP completed"))
+        self._recording = False
+        meta = self._meta(ep)
+        ep.writer.abort()
+        self._episode = None
+        log.info("episode %s discarded: deleted %s", ep.meta.episode_id, ep.writer.part_path)
+        meta.path = ""
+        return EpisodeReply(ok=True, recording=False, meta=meta)
+
+    def _status(self, req: EpisodeRequest, fut: Future) -> EpisodeReply:
+        ep = self._episode
+        if ep is None:
+            return EpisodeReply(ok=True, recording=False, meta=self._last_meta)
+        return EpisodeReply(ok=True, recording=True, meta=self._meta(ep))
+
+    # -- writer thread ----------------------------------------------------------------------
+    def _run(self) -> None:
+        busy = False
+        while not self._halt.is_set():
+            if not busy:
+                self._wake.wait(timeout=0.05)
+                self._wake.clear()
+            try:
+                self._run_commands()
+                self._run_alive_events()
+                busy = self._drain(_BATCH) > 0
+                self._poll_stop()
+                if self._episode is not None and not self._episode.error:
+                    self._episode.writer.maybe_flush()
+            except Exception:  # the writer thread must outlive any single bad step
+                log.exception("recorder writer step failed")
+                busy = False
+
+    def _run_commands(self) -> None:
+        while True:
+            try:
+                run, fut = self._commands.get_nowait()
+            except queue.Empty:
+                return
+            try:
+                reply = run()
+            except Exception as exc:
+                log.exception("episode command failed")
+                reply = self._error(f"{type(exc).__name__}: {exc}")
+            if reply is not None:
+                fut.set_result(reply)
+
+    def _run_alive_events(self) -> None:
+        while True:
+            try:
+                service, alive, stamp = self._alive_events.get_nowait()
+            except queue.Empty:
+                return
+            ep = self._episode
+            if ep is None or stamp < ep.start_ns:
+                continue
+            if not alive:
+                ep.left.add(service)
+                ep.note(f"service {service} lost liveliness mid-episode")
+                log.warning("episode %s: service %s lost liveliness", ep.meta.episode_id, service)
+            elif service in ep.left:
+                ep.note(f"service {service} restarted mid-episode")
+                log.warning("episode %s: service %s is back", ep.meta.episode_id, service)
+
+    def _drain(self, per_queue: int | None) -> int:
+        """Process up to ``per_queue`` samples of every channel (None: what each holds now)."""
+        done = 0
+        for key, q in list(self._queues.items()):
+            n = q.qsize() if per_queue is None else per_queue
+            for _ in range(n):
+                try:
+                    rx = q.get_nowait()
+                except queue.Empty:
+                    break
+                try:
+                    self._process(key, rx)
+                except Exception as exc:  # a recorder bug on one sample must not lose the others
+                    log.exception("recorder failed on a sample of %s", key)
+                    if self._episode is not None:
+                        self._episode.note(f"recorder error on {key}: {type(exc).__name__}: {exc}")
+                done += 1
+        return done
+
+    def _process(self, key: str, rx: Received) -> None:
+        topic = self._topics[key]
+        try:
+            msg = parse(topic, rx.payload, self.cfg.decode_images)
+        except MalformedPayload as exc:
+            self._malformed(key, rx, str(exc))
+            return
+        calibration = _is_calibration(key)
+        if calibration:
+            self._calibration[key] = (rx, msg)
+        ep = self._episode
+        if ep is None or (rx.receive_ns < ep.start_ns and not calibration):
+            return  # arrived before the episode started
+        self._write(ep, key, rx, msg)
+
+    def _malformed(self, key: str, rx: Received, reason: str) -> None:
+        ep = self._episode
+        counts = ep.malformed if ep is not None and rx.receive_ns >= ep.start_ns else self._idle_malformed
+        counts[key] += 1
+        n = counts[key]
+        if n <= _LOG_FIRST or n % 100 == 0:
+            log.warning("malformed payload on %s (%d bytes, #%d): %s", key, len(rx.payload), n, reason)
+
+    def _write(self, ep: _Episode, key: str, rx: Received, msg: Message) -> None:
+        if ep.error:
+            return
+        topic = self._topics.get(key) or topic_for_key(key)
+        stamp = capture_ns(msg)
+        try:
+            ep.writer.write(topic.mcap_topic, topic.msg_type, rx.payload, rx.receive_ns, stamp)
+        except (OSError, ValueError) as exc:
+            ep.error = f"write failed on {key}: {exc}"
+            ep.note(ep.error)
+            log.error("episode %s: %s; writing stops, the partial file is kept", ep.meta.episode_id, ep.error)
+            return
+        ep.written[key] += 1
+        if key.endswith("/image") or _is_calibration(key):
+            ep.cameras.add(_camera_of(key))
+        header = header_of(msg)
+        if header is not None:
+            last = ep.last_seq.get(key)
+            if last is not None and header.seq != last + 1:
+                ep.gaps[key] += 1
+                if header.seq <= last:
+                    ep.resets[key] += 1
+                    log.warning("episode %s: sequence on %s went back from %d to %d (publisher restart?)",
+                                ep.meta.episode_id, key, last, header.seq)
+                else:
+                    ep.missing[key] += header.seq - last - 1
+            ep.last_seq[key] = header.seq
+        if key == ROBOT_STATE.key:
+            if ep.state_n == 0:
+                ep.state_first = stamp
+            ep.state_n += 1
+            ep.state_last = stamp
+
+    # -- metadata and closing ---------------------------------------------------------------
+    def _meta(self, ep: _Episode, ticks: int = 0, success: bool = False) -> EpisodeMeta:
+        """The episode's facts so far, with every reason it is suspect in ``flags``."""
+        meta = EpisodeMeta()
+        meta.CopyFrom(ep.meta)
+        meta.success = success
+        states = ep.written[ROBOT_STATE.key]
+        meta.ticks = ticks or states
+        meta.achieved_hz = ep.achieved_hz
+        for cam in sorted(ep.cameras):
+            meta.frames[cam] = ep.written[f"camera/{cam}/image"]
+        with self._drop_lock:
+            drops = {k: v for k, v in self._drops.items() if v}
+        meta.drops.update(drops)
+        meta.malformed.update({k: v for k, v in ep.malformed.items() if v})
+        meta.gaps.update({k: v for k, v in ep.gaps.items() if v})
+        meta.end_ns = now_ns()
+
+        flags = list(ep.events)
+        floor = self.cfg.min_rate_fraction * ep.meta.control_hz
+        if ep.meta.control_hz > 0 and meta.achieved_hz < floor:
+            flags.append(f"low rate: robot state at {meta.achieved_hz:.2f} Hz < {self.cfg.min_rate_fraction:g} x "
+                         f"{ep.meta.control_hz:g} Hz")
+        if drops:
+            flags.append(f"drops: recorder queues overflowed ({_fmt(drops)})")
+        if meta.malformed:
+            flags.append(f"malformed payloads ({_fmt(dict(meta.malformed))})")
+        for key, n in sorted(ep.resets.items()):
+            flags.append(f"publisher restart on {key}: sequence went back {n}x")
+        unexplained = {k: m for k, m in ep.missing.items() if m > drops.get(k, 0)}
+        if unexplained:
+            flags.append(f"sequence gaps: messages lost upstream ({_fmt(unexplained)})")
+        if ticks and states != ticks:
+            flags.append(f"robot/state: {states} states for {ticks} ticks")
+        for cam, n in sorted(meta.frames.items()):
+            if n != meta.ticks:
+                flags.append(f"camera {cam}: {n} frames for {meta.ticks} ticks")
+        meta.flags.extend(flags)
+        return meta
+
+    def _close_episode(self, success: bool, ticks: int) -> EpisodeReply:
+        """Write what is queued, the final metadata, and close the file."""
+        ep = self._episode
+        assert ep is not None
+        self._recording = False
+        self._drain(None)
+        self._run_alive_events()
+        meta = self._meta(ep, ticks=ticks, success=success)
+        self._episode = None
+        try:
+            if ep.error:
+                raise OSError(ep.error)
+            stamp = now_ns()
+            ep.writer.write_message(EPISODE_CHANNEL, meta, stamp, stamp)
+            ep.writer.flush()  # the final EpisodeMeta reaches the disk before the record that repeats it
+            ep.writer.add_metadata(EPISODE_RECORD, meta_to_record(meta))
+            ep.writer.close()
+        except (OSError, ValueError) as exc:
+            ep.writer.abandon()
+            log.error("episode %s could not be closed: %s; %s is kept for recovery", meta.episode_id, exc,
+                      ep.writer.part_path)
+            return EpisodeReply(ok=False, recording=False, meta=meta,
+                                error=f"could not close {ep.writer.part_path}: {exc}; recover it with "
+                                      f"`python -m services.recorder.recover {ep.writer.part_path}`")
+        self._last_meta = meta
+        level = logging.WARNING if meta.flags else logging.INFO
+        log.log(level, "episode %s closed: %d states, %.2f Hz, frames {%s}%s -> %s", meta.episode_id,
+                ep.written[ROBOT_STATE.key], meta.achieved_hz, _fmt(dict(meta.frames)),
+                "".join(f"\n  flag: {f}" for f in meta.flags), ep.writer.path)
+        try:
+            self._publisher.put(meta)
+        except Exception:  # the file is closed; a bus problem must not turn this into a failure
+            log.exception("could not publish EpisodeMeta of %s", meta.episode_id)
+        return EpisodeReply(ok=True, recording=False, meta=meta)
+
+
+def main(cfg: RecorderConfig) -> int:
+    from services.core.runtime import announce_ready, stop_on_signals
+
+    stop = threading.Event()
+    stop_on_signals(stop)
+    with Bus(cfg.bus) as bus, Recorder(cfg, bus) as recorder:
+        announce_ready("recorder", str(cfg.out_dir))
+        recorder.run(stop)
+    return 0

@@ -1,0 +1,361 @@
+"""The recorder in-process on real Zenoh (a loopback router, client sessions) writing real files."""
+
+from __future__ import annotations
+
+import time
+from contextlib import ExitStack
+from typing import Callable
+
+import numpy as np
+import pytest
+from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
+from mcap.reader import make_reader
+from mcap_protobuf.decoder import DecoderFactory
+
+from services.core import topics
+from services.core.bus import Bus, BusConfig, free_tcp_port, router
+from services.core.rig import Camera, look_at
+from services.core.tensors import compressed_image, encode_jpeg
+from services.pb.control_pb2 import AppliedAction
+from services.pb.episode_pb2 import (
+    EPISODE_COMMAND_DISCARD,
+    EPISODE_COMMAND_START,
+    EPISODE_COMMAND_STATUS,
+    EPISODE_COMMAND_STOP,
+    EpisodeMeta,
+    EpisodeReply,
+    EpisodeRequest,
+)
+from services.pb.sensors_pb2 import RobotState, TaskState
+from services.recorder.config import RecorderConfig
+from services.recorder.reader import read_episode
+from services.recorder.service import Recorder
+from services.recorder.writer import EPISODE_RECORD, record_to_dict
+
+PERIOD_NS = 20_000_000  # 50 Hz capture stamps
+RNG = np.random.default_rng(1)
+
+
+def wait_for(cond: Callable[[], object], timeout: float = 10.0, what: str = "condition"):
+    deadline = time.monotonic() + timeout
+    while True:
+        value = cond()
+        if value:
+            return value
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout:.0f}s waiting for {what}")
+        time.sleep(0.01)
+
+
+class Net:
+    """A loopback router plus helpers to open client sessions on it."""
+
+    def __init__(self, stack: ExitStack):
+        self.endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+        self.stack = stack
+        stack.enter_context(router([self.endpoint]))
+
+    def bus_config(self) -> BusConfig:
+        return BusConfig(mode="client", connect=[self.endpoint])
+
+    def client(self) -> Bus:
+        return self.stack.enter_context(Bus(self.bus_config()))
+
+
+@pytest.fixture
+def net():
+    with ExitStack() as stack:
+        yield Net(stack)
+
+
+@pytest.fixture
+def make_recorder(net, tmp_path):
+    with ExitStack() as stack:
+        def make(**overrides) -> Recorder:
+            cfg = RecorderConfig(bus=net.bus_config(), out_dir=tmp_path / "episodes", **overrides)
+            bus = stack.enter_context(Bus(cfg.bus))
+            return stack.enter_context(Recorder(cfg, bus))
+
+        yield make
+
+
+def control(bus: Bus, command: int, **fields) -> EpisodeReply:
+    req = EpisodeRequest(command=command, **fields)
+    return EpisodeReply.FromString(bus.query(topics.EPISODE_CONTROL, req.SerializeToString(), timeout=15))
+
+
+def status(bus: Bus) -> EpisodeReply:
+    return control(bus, EPISODE_COMMAND_STATUS)
+
+
+class Source:
+    """A synthetic session: robot state, applied action, task state and a JPEG per camera per tick."""
+
+    def __init__(self, bus: Bus, cameras: tuple[str, ...] = ("F", "L"), shape=(24, 32)):
+        self.bus = bus
+        self.cameras = cameras
+        self.state = bus.publisher(topics.ROBOT_STATE)
+        self.applied = bus.publisher(topics.APPLIED_ACTION)
+        self.task = bus.publisher(topics.TASK_STATE)
+        self.images = {c: bus.publisher(topics.camera_image(c)) for c in cameras}
+        self.calib = {c: bus.publisher(topics.camera_calibration(c)) for c in cameras}
+        self.pose = {c: bus.publisher(topics.camera_pose(c)) for c in cameras}
+        self.frame = RNG.integers(0, 255, (*shape, 3), dtype=np.uint8)
+        self.t0 = time.time_ns()
+        self.stamps: list[int] = []
+
+    def camera(self, name: str) -> Camera:
+        pos = np.array([1.5, 0.3 * len(name), 0.6])
+        return Camera(name, pos, look_at(pos, np.array([0.5, 0.0, 0.1])), 50.0)
+
+    def publish_calibration(self) -> None:
+        stamp = time.time_ns()
+        for c in self.cameras:
+            self.calib[c].put(self.camera(c).calibration_msg(32, 24, stamp))
+            self.pose[c].put(self.camera(c).pose_msg(stamp))
+
+    def tick(self, i: int, seq: int | None = None) -> int:
+        stamp = self.t0 + i * PERIOD_NS
+        seq = i if seq is None else seq
+        state = RobotState(tick=i, eef_pos=[0.4, 0.0, 0.2], eef_quat_wxyz=[1, 0, 0, 0], episode_id="e")
+        state.header.stamp_ns, state.header.seq = stamp, seq
+        self.state.put(state)
+        for c in self.cameras:
+            self.images[c].put(compressed_image(self.frame, stamp, c))
+        applied = AppliedAction(tick=i)
+        applied.header.stamp_ns, applied.header.seq = stamp, seq
+        applied.action.dp.extend([0.0, 0.0, 0.01])
+        self.applied.put(applied)
+        task = TaskState(tick=i, task="lift", seed=3)
+        task.header.stamp_ns, task.header.seq = stamp, seq
+        self.task.put(task)
+        self.stamps.append(stamp)
+        return stamp
+
+    def run(self, ticks: range) -> None:
+        for i in ticks:
+            self.tick(i)
+
+
+def start(bus: Bus, episode_id: str, control_hz: float = 50.0) -> EpisodeReply:
+    return control(bus, EPISODE_COMMAND_START, episode_id=episode_id, task="lift", seed=3, rig="five15",
+                   control_hz=control_hz)
+
+
+def test_records_a_session_into_a_self_contained_mcap(net, make_recorder, tmp_path):
+    rec = make_recorder()
+    pub = net.client()
+    pub.wait_alive(["recorder"], timeout=10)
+    src = Source(pub)
+    src.publish_calibration()
+    wait_for(lambda: len(rec.cached_calibration) == 4, what="calibration cached while idle")
+    announced: list[EpisodeMeta] = []
+    pub.subscribe(topics.EPISODE, lambda msg, rx: announced.append(msg))
+    stray = pub.publisher(topics.Topic("policy/debug", RobotState))  # a key outside the session graph
+
+    reply = start(pub, "ep-0001")
+    assert reply.ok and reply.recording, reply.error
+    src.run(range(25))
+    stray.put(b"not recorded")
+    src.publish_calibration()  # republished mid-episode (1 Hz / sim reset): recorded too
+    reply = control(pub, EPISODE_COMMAND_STOP, episode_id="ep-0001", success=True, ticks=25)
+    assert reply.ok, reply.error
+    meta = reply.meta
+    assert (meta.ticks, dict(meta.frames), meta.success) == (25, {"F": 25, "L": 25}, True)
+    assert meta.achieved_hz == pytest.approx(50.0)
+    assert list(meta.flags) == [] and not meta.drops and not meta.malformed and not meta.gaps
+    path = tmp_path / "episodes" / "ep-0001.mcap"
+    assert meta.path == str(path) and path.is_file()
+    assert not list((tmp_path / "episodes").glob("*.part"))
+    assert wait_for(lambda: announced, what="EpisodeMeta on recorder/episode")[-1] == meta
+
+    # Read back with the mcap library alone, in file order.
+    per_channel: dict[str, list] = {}
+    with open(path, "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        summary = reader.get_summary()
+        assert {c.compression for c in summary.chunk_indexes} == {"zstd"}
+        schemas = {c.topic: summary.schemas[c.schema_id].name for c in summary.channels.values()}
+        for _, channel, message, decoded in reader.iter_decoded_messages(log_time_order=False):
+            per_channel.setdefault(channel.topic, []).append((message, decoded))
+        metadata = {m.name: m.metadata for m in reader.iter_metadata()}
+    assert schemas == {
+        "/robot/state": "viewscale.v1.RobotState", "/robot/applied": "viewscale.v1.AppliedAction",
+        "/sim/task": "viewscale.v1.TaskState", "/recorder/episode": "viewscale.v1.EpisodeMeta",
+        **{f"/camera/{c}/image": "foxglove.CompressedImage" for c in "FL"},
+        **{f"/camera/{c}/calibration": "foxglove.CameraCalibration" for c in "FL"},
+        **{f"/camera/{c}/pose": "foxglove.FrameTransform" for c in "FL"},
+    }
+    counts = {t: len(v) for t, v in per_channel.items()}
+    assert counts == {"/robot/state": 25, "/robot/applied": 25, "/sim/task": 25, "/camera/F/image": 25,
+                      "/camera/L/image": 25, "/camera/F/calibration": 2, "/camera/L/calibration": 2,
+                      "/camera/F/pose": 2, "/camera/L/pose": 2, "/recorder/episode": 1}
+    for topic, msgs in per_channel.items():
+        assert [m.sequence for m, _ in msgs] == list(range(len(msgs))), topic
+        log_times = [m.log_time for m, _ in msgs]
+        pub_times = [m.publish_time for m, _ in msgs]
+        assert log_times == sorted(log_times) and pub_times == sorted(pub_times), topic
+    for topic in ("/robot/state", "/camera/F/image", "/sim/task"):
+        assert [m.publish_time for m, _ in per_channel[topic]] == src.stamps
+        # receive time: after capture, inside the episode
+        assert all(meta.start_ns <= m.log_time <= meta.end_ns for m, _ in per_channel[topic])
+    # The calibration cached before START opens the file, ahead of any frame.
+    assert per_channel["/camera/F/calibration"][0][0].log_time < meta.start_ns
+    assert per_channel["/camera/F/calibration"][0][1].K == list(src.camera("F").calibration_msg(32, 24, 1).K)
+    assert per_channel["/recorder/episode"][0][1].episode_id == "ep-0001"
+    record = record_to_dict(metadata[EPISODE_RECORD])
+    assert (record["task"], record["seed"], record["rig"], record["frames"], record["flags"]) == (
+        "lift", 3, "five15", {"F": 25, "L": 25}, [])
+
+    ep = read_episode(path)
+    assert ep.meta == meta and ep.metadata["ticks"] == 25
+    assert isinstance(ep.messages("/camera/L/image")[0].msg, CompressedImage)
+    assert status(pub).meta == meta  # idle STATUS reports the last episode
+
+
+def test_control_queryable_answers_every_command_and_error(net, make_recorder, tmp_path):
+    make_recorder()
+    pub = net.client()
+    pub.wait_alive(["recorder"], timeout=10)
+    out = tmp_path / "episodes"
+
+    def err(reply: EpisodeReply, text: str) -> None:
+        assert not reply.ok and text in reply.error, reply
+
+    err(control(pub, EPISODE_COMMAND_STOP, episode_id="x"), "not recording")
+    err(control(pub, EPISODE_COMMAND_DISCARD, episode_id="nope"), "unknown episode id 'nope'")
+    err(start(pub, "../escape"), "invalid episode id")
+    err(control(pub, 0), "unknown episode command")
+    bad = EpisodeReply.FromString(pub.query(topics.EPISODE_CONTROL, b"\xff\xff\xff", timeout=15))
+    err(bad, "malformed EpisodeRequest")
+    assert not status(pub).recording
+
+    assert start(pub, "a").ok
+    err(start(pub, "b"), "already recording episode 'a'")
+    err(control(pub, EPISODE_COMMAND_STOP, episode_id="b"), "unknown episode id 'b' (recording 'a')")
+    live = status(pub)
+    assert live.ok and live.recording and live.meta.episode_id == "a"
+    assert (out / "a.mcap.part").is_file()
+    discarded = control(pub, EPISODE_COMMAND_DISCARD, episode_id="a")
+    assert discarded.ok and not discarded.recording and discarded.meta.episode_id == "a"
+    assert not list(out.iterdir())
+    assert not status(pub).recording
+
+    assert start(pub, "c").ok
+    stopped = control(pub, EPISODE_COMMAND_STOP)  # no id: the current episode
+    assert stopped.ok and stopped.meta.episode_id == "c" and (out / "c.mcap").is_file()
+    err(start(pub, "c"), "already exists")
+    assert control(pub, EPISODE_COMMAND_DISCARD, episode_id="c").ok  # a finished episode's file
+    assert not (out / "c.mcap").exists()
+
+
+def test_malformed_payloads_are_counted_and_no_good_message_is_lost(net, make_recorder):
+    make_recorder()
+    pub = net.client()
+    pub.wait_alive(["recorder"], timeout=10)
+    src = Source(pub, cameras=("F",))
+    raw_state = pub.publisher(topics.ROBOT_STATE)  # put() takes raw bytes too
+    raw_image = pub.publisher(topics.camera_image("F"))
+    good_img = compressed_image(src.frame, src.t0, "F")
+    undecodable = CompressedImage(format="jpeg", data=b"\xff\xd8" + bytes(300) + b"\xff\xd9")
+    undecodable.timestamp.FromNanoseconds(src.t0)
+    half = CompressedImage(format="jpeg", data=encode_jpeg(src.frame)[:200])
+    half.timestamp.FromNanoseconds(src.t0)
+
+    assert start(pub, "bad-input").ok
+    for i in range(12):
+        src.tick(i)
+        if i % 3 == 0:
+            raw_state.put(good_img.SerializeToString())  # wrong schema
+            raw_state.put(b"\x0a\x05\x08")  # truncated
+            raw_image.put(undecodable.SerializeToString())
+            raw_image.put(half.SerializeToString())
+            raw_image.put(b"\x12\x04abc")  # truncated
+    reply = control(pub, EPISODE_COMMAND_STOP, success=False, ticks=12)
+    assert reply.ok, reply.error
+    assert dict(reply.meta.malformed) == {"robot/state": 8, "camera/F/image": 12}
+    assert (reply.meta.ticks, dict(reply.meta.frames)) == (12, {"F": 12})
+    assert any(f.startswith("malformed payloads") for f in reply.meta.flags)
+    assert not reply.meta.gaps  # the bad ones never reached the sequence check
+    ep = read_episode(reply.meta.path)
+    assert [r.msg.tick for r in ep.messages("/robot/state")] == list(range(12))
+    assert [r.publish_time for r in ep.messages("/camera/F/image")] == src.stamps
+    assert status(pub).ok  # still serving
+
+
+def test_publisher_restart_flags_the_episode(net, make_recorder):
+    make_recorder()
+    watcher = net.client()
+    watcher.wait_alive(["recorder"], timeout=10)
+    assert start(watcher, "restart").ok
+
+    with Bus(net.bus_config()) as first:
+        first.announce("sim")
+        src = Source(first, cameras=("F",))
+        src.run(range(10))
+        wait_for(lambda: status(watcher).meta.ticks == 10, what="first run recorded")
+    wait_for(lambda: any("sim lost liveliness" in f for f in status(watcher).meta.flags), what="liveliness loss")
+
+    with Bus(net.bus_config()) as second:
+        second.announce("sim")
+        again = Source(second, cameras=("F",))
+        again.t0 = src.t0 + 10 * PERIOD_NS
+        again.run(range(10))  # sequences restart at 0
+        wait_for(lambda: status(watcher).meta.ticks == 20, what="second run recorded")
+        reply = control(watcher, EPISODE_COMMAND_STOP, success=True, ticks=20)
+    assert reply.ok, reply.error
+    flags = list(reply.meta.flags)
+    assert "service sim lost liveliness mid-episode" in flags
+    assert "service sim restarted mid-episode" in flags
+    assert "publisher restart on robot/state: sequence went back 1x" in flags
+    assert reply.meta.gaps["robot/state"] == 1 and reply.meta.gaps["sim/task"] == 1
+    assert dict(reply.meta.frames) == {"F": 20}
+    assert len(read_episode(reply.meta.path).messages("/robot/state")) == 20
+    assert status(watcher).ok
+
+
+def test_a_slow_writer_with_tiny_queues_drops_and_counts(net, make_recorder):
+    make_recorder(queue_size=2)
+    pub = net.client()
+    pub.wait_alive(["recorder"], timeout=10)
+    # Noise compresses badly: ~300 kB frames whose full decode keeps the writer far behind.
+    src = Source(pub, cameras=("F",), shape=(480, 640))
+    assert start(pub, "flood").ok
+    src.run(range(60))
+    reply = control(pub, EPISODE_COMMAND_STOP, success=True, ticks=60)
+    assert reply.ok, reply.error
+    meta = reply.meta
+    dropped = meta.drops["camera/F/image"]
+    assert dropped > 0 and meta.frames["F"] + dropped == 60
+    assert meta.ticks == 60 and meta.drops["robot/state"] + len(read_episode(meta.path).messages("robot/state")) == 60
+    assert any(f.startswith("drops: recorder queues overflowed") for f in meta.flags)
+    # Drops at all mean the zenoh callback returned instead of waiting for room: with BLOCK
+    # publishers, a blocking callback would have pushed back on the source and dropped nothing.
+    assert len(read_episode(meta.path).messages("/camera/F/image")) == meta.frames["F"]
+
+
+def test_an_episode_below_the_rate_floor_is_flagged(net, make_recorder):
+    make_recorder(min_rate_fraction=0.9, stop_grace_s=0.2)  # 12 ticks never come: don't wait long
+    pub = net.client()
+    pub.wait_alive(["recorder"], timeout=10)
+    src = Source(pub, cameras=("F",))
+    assert start(pub, "slow", control_hz=100.0).ok  # stamps are 50 Hz
+    src.run(range(10))
+    reply = control(pub, EPISODE_COMMAND_STOP, success=True, ticks=12)
+    assert reply.ok
+    flags = list(reply.meta.flags)
+    assert "low rate: robot state at 50.00 Hz < 0.9 x 100 Hz" in flags
+    assert "robot/state: 10 states for 12 ticks" in flags and "camera F: 10 frames for 12 ticks" in flags
+
+
+def test_shutdown_closes_the_open_episode_as_interrupted(net, tmp_path):
+    cfg = RecorderConfig(bus=net.bus_config(), out_dir=tmp_path / "episodes")
+    pub = net.client()
+    with Bus(cfg.bus) as bus, Recorder(cfg, bus):
+        pub.wait_alive(["recorder"], timeout=10)
+        assert start(pub, "cut").ok
+        Source(pub, cameras=("F",)).run(range(5))
+        wait_for(lambda: status(pub).meta.ticks == 5, what="ticks recorded")
+    assert not (tmp_path / "episodes" / "cut.mcap.part").exists()
+    ep = read_episode(tmp_path / "episodes" / "cut.mcap")
+    assert any(f.startswith("interrupted") for f in ep.flags) and ep.metadata["frames"] == {"F": 5}
