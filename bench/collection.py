@@ -50,6 +50,7 @@ def main() -> None:
             with Bus(cfg.bus) as bus:
                 session = Session(cfg, bus, progress=lambda s: print(s, file=sys.stderr))
                 bus.wait_alive(cfg.services, timeout=cfg.wait_services_s)
+                session.warm_up()
                 cpu0 = {n: sum(p.cpu_times()[:2]) for n, p in procs.items()}
                 t0 = time.monotonic()
                 attempts, seed = [], 0

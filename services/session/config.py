@@ -17,6 +17,7 @@ class SessionConfig(Frozen):
     max_attempts: int | None = Field(None, ge=1)  # give up after this many attempts (default 3 x episodes)
     max_ticks: int | None = Field(None, ge=1)  # per-episode tick limit (default per task)
     settle_ticks: int = Field(3, ge=0)  # ticks still recorded after success, so demos end at rest
+    warmup_ticks: int = Field(10, ge=0)  # unrecorded ticks before the first episode (first renders, routes)
     control_hz: float = Field(20.0, gt=0)  # the sim's control rate (recorded; used for time limits)
     services: list[str] = Field(default_factory=lambda: ["sim", "teleop", "recorder"])  # must be alive
     wait_services_s: float = Field(120.0, gt=0)  # how long to wait for them at start-up

@@ -163,10 +163,24 @@ class Session:
             self._recorder(EpisodeCommand.EPISODE_COMMAND_DISCARD, episode_id=episode_id)
         return attempt
 
+    def warm_up(self) -> None:
+        """Run a few unrecorded ticks so the first episode does not pay for cold starts
+        (first renders and JPEG encodes, zenoh routes, the expert's first call)."""
+        with self._cv:
+            self._episode, self._tick, self._success_since = "warmup", -1, None
+        self._sim(SimCommand.SIM_COMMAND_RESET, task=self.cfg.task, seed=self.cfg.seed, episode_id="warmup")
+        self._sim(SimCommand.SIM_COMMAND_RUN)
+        try:
+            self._wait_done(self.cfg.warmup_ticks)
+        finally:
+            self._sim(SimCommand.SIM_COMMAND_PAUSE)
+
     def run(self) -> SessionResult:
         cfg = self.cfg
         self.progress(f"waiting for services: {', '.join(cfg.services)}")
         self.bus.wait_alive(cfg.services, timeout=cfg.wait_services_s)
+        if cfg.warmup_ticks:
+            self.warm_up()
         result = SessionResult()
         max_attempts = cfg.max_attempts or 3 * cfg.episodes
         seed = cfg.seed
