@@ -13,10 +13,10 @@ import os
 
 os.environ.setdefault("MUJOCO_GL", "egl")  # before mujoco is imported: headless rendering
 
-from dataclasses import dataclass
+from dataclasses import dataclass  # noqa: E402
 
-import mujoco
-import numpy as np
+import mujoco  # noqa: E402
+import numpy as np  # noqa: E402
 
 
 def rotation_error(R_target: np.ndarray, R: np.ndarray) -> np.ndarray:

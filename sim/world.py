@@ -15,7 +15,8 @@ it, rotation composing on the left in the base frame (``R_next = Rot(drot) @ R``
 Damped-least-squares IK (``sim.ik``) turns the target into joint positions once per tick, and
 the joint position actuators follow, their set points ramped linearly over the physics
 substeps of one control period (``TIMESTEP`` = 2 ms, 25 substeps at 20 Hz). Everything is
-deterministic: the same seed and the same actions give the same trajectory, bit for bit.
+deterministic: the same seed and the same actions give the same trajectory, bit for bit (on one
+machine and MuJoCo build; rendering does not perturb it).
 """
 
 from __future__ import annotations
@@ -24,16 +25,16 @@ import os
 
 os.environ.setdefault("MUJOCO_GL", "egl")  # before mujoco is imported: headless rendering
 
-import math
-import numbers
-from dataclasses import dataclass
+import math  # noqa: E402
+import numbers  # noqa: E402
+from dataclasses import dataclass  # noqa: E402
 
-import mujoco
-import numpy as np
+import mujoco  # noqa: E402
+import numpy as np  # noqa: E402
 
-from services.core.rig import Rig
-from sim.ik import SiteIk, rotation_error
-from sim.scene import (
+from services.core.rig import Rig  # noqa: E402
+from sim.ik import SiteIk, rotation_error  # noqa: E402
+from sim.scene import (  # noqa: E402
     ARM_JOINTS,
     EEF_SITE,
     FINGER_JOINTS,
@@ -43,7 +44,7 @@ from sim.scene import (
     MultiCameraRenderer,
     build_model,
 )
-from sim.tasks import TASKS, make_task
+from sim.tasks import TASKS, make_task  # noqa: E402
 
 __all__ = ["TASKS", "ObjectPose", "RobotSnapshot", "SimWorld"]
 
@@ -81,6 +82,16 @@ def _vector(name: str, value, n: int) -> np.ndarray:
     if arr.shape != (n,) or not np.all(np.isfinite(arr)):
         raise ValueError(f"{name} must be {n} finite numbers, got {value!r}")
     return arr
+
+
+def _scalar(name: str, value) -> float:
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        arr = np.array([np.nan])
+    if arr.size != 1 or not np.isfinite(arr).all():
+        raise ValueError(f"{name} must be one finite number, got {value!r}")
+    return float(arr.reshape(()))
 
 
 def _rotvec_to_mat(v: np.ndarray) -> np.ndarray:
@@ -186,12 +197,14 @@ class SimWorld:
     # -- control ----------------------------------------------------------------------------
 
     def step(self, dp, drot, gripper) -> None:
-        """Integrate one EEF delta into the target and simulate one control period."""
+        """Integrate one EEF delta into the target and simulate one control period.
+
+        ``dp`` and ``drot`` are 3 finite numbers each, ``gripper`` one (clipped to [0, 1]);
+        anything else is a ValueError. See the module docstring for the limits applied.
+        """
         dp = _clip_norm(_vector("dp", dp, 3), self._max_dp)
         drot = _clip_norm(_vector("drot", drot, 3), self._max_drot)
-        if isinstance(gripper, bool) or not isinstance(gripper, numbers.Real) or not math.isfinite(gripper):
-            raise ValueError(f"gripper must be a finite number in [0, 1], got {gripper!r}")
-        g = min(max(float(gripper), 0.0), 1.0)
+        g = min(max(_scalar("gripper", gripper), 0.0), 1.0)
 
         d = self.data
         eef_pos = d.site_xpos[self._site].copy()
@@ -202,7 +215,11 @@ class SimWorld:
         lead = rotation_error(R, eef_R)
         if np.linalg.norm(lead) > MAX_LEAD_ROT:
             R = _rotvec_to_mat(_clip_norm(lead, MAX_LEAD_ROT)) @ eef_R
-        self._target_R = R
+        quat = np.empty(4)
+        mujoco.mju_mat2Quat(quat, R.reshape(-1))  # back through a unit quaternion: no drift from
+        mat = np.empty(9)  # orthonormality over thousands of compositions
+        mujoco.mju_quat2Mat(mat, quat)
+        self._target_R = mat.reshape(3, 3)
 
         q_prev, f_prev = self._q_cmd, self._finger_cmd
         self._q_cmd = self._ik.solve(q_prev, self._target_pos, self._target_R).q
