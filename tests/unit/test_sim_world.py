@@ -214,7 +214,7 @@ def test_bad_input_is_a_clear_value_error(front):
             w.step([0.0, 0.0], ZERO, 0.0)
         with pytest.raises(ValueError, match="drot must be 3 finite numbers"):
             w.step(ZERO, [math.nan, 0.0, 0.0], 0.0)
-        with pytest.raises(ValueError, match="gripper"):
+        with pytest.raises(ValueError, match="gripper must be one finite number"):
             w.step(ZERO, ZERO, "closed")
 
 
