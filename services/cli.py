@@ -5,6 +5,7 @@
     viewscale dataset info data/ds
     viewscale train --data data/ds --preset tiny --steps 2000 --out runs/lift-five15-camera
     viewscale router --listen tcp/0.0.0.0:7447
+    viewscale episode start --task pour --rig five15 ; viewscale episode stop --success
 
 Errors a user can cause print one ``error:`` line and exit with code 2.
 """
@@ -44,6 +45,39 @@ def _collect(args: argparse.Namespace) -> int:
     return 0 if len(result.recorded) >= args.episodes else 1
 
 
+def _episode(args: argparse.Namespace) -> int:
+    """Drive the recorder by hand (hardware sessions): start/stop/discard/status."""
+    from datetime import datetime, timezone
+
+    from services.core import topics
+    from services.core.bus import Bus, BusConfig
+    from services.pb.episode_pb2 import EpisodeCommand, EpisodeReply, EpisodeRequest
+
+    command = {"start": EpisodeCommand.EPISODE_COMMAND_START, "stop": EpisodeCommand.EPISODE_COMMAND_STOP,
+               "discard": EpisodeCommand.EPISODE_COMMAND_DISCARD, "status": EpisodeCommand.EPISODE_COMMAND_STATUS}
+    episode_id = args.id
+    if args.action == "start" and not episode_id:
+        episode_id = f"{args.task}-{args.rig}-{datetime.now(timezone.utc).strftime('%Y%m%dT%H%M%S')}"
+    req = EpisodeRequest(command=command[args.action], episode_id=episode_id or "", task=args.task, rig=args.rig,
+                         seed=args.seed, control_hz=args.hz, success=args.success)
+    try:
+        with Bus(BusConfig(mode="client", connect=[args.connect], connect_timeout_s=min(args.timeout, 5.0))) as bus:
+            reply = EpisodeReply.FromString(bus.query(topics.EPISODE_CONTROL, req.SerializeToString(), args.timeout))
+    except (TimeoutError, RuntimeError, ConnectionError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    if not reply.ok:
+        print(f"error: {reply.error}", file=sys.stderr)
+        return 2
+    m = reply.meta
+    state = "recording" if reply.recording else "idle"
+    print(f"{args.action}: ok ({state})" + (f" episode {m.episode_id}" if m.episode_id else ""))
+    if m.path:
+        print(f"  {m.path}: {m.ticks} ticks, {m.achieved_hz:.1f} Hz, frames {dict(m.frames)}, "
+              f"drops {sum(m.drops.values())}" + (f", flags: {'; '.join(m.flags)}" if m.flags else ""))
+    return 0
+
+
 def _router(args: argparse.Namespace) -> int:
     from services.router.__main__ import main as router_main
 
@@ -80,6 +114,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--set", action="append", default=[], metavar="SERVICE.KEY=VALUE",
                    help="override a service's config field, e.g. sim.jpeg_quality=80 (repeatable)")
     p.set_defaults(func=_collect)
+
+    p = sub.add_parser("episode", help="start/stop/discard/status of the recorder's episode (hardware sessions)")
+    p.add_argument("action", choices=["start", "stop", "discard", "status"])
+    p.add_argument("--connect", default="tcp/127.0.0.1:7447", help="Zenoh router endpoint (default tcp/127.0.0.1:7447)")
+    p.add_argument("--id", default=None, help="episode id (start: default <task>-<rig>-<UTC time>)")
+    p.add_argument("--task", default="", help="task name recorded with the episode")
+    p.add_argument("--rig", default="", help="rig name recorded with the episode")
+    p.add_argument("--seed", type=int, default=0, help="scene seed recorded with the episode")
+    p.add_argument("--hz", type=float, default=20.0, help="control rate recorded with the episode")
+    p.add_argument("--success", action="store_true", help="stop: mark the episode successful")
+    p.add_argument("--timeout", type=float, default=30.0, help="seconds to wait for the recorder")
+    p.set_defaults(func=_episode)
 
     p = sub.add_parser("router", help="run a Zenoh router for a multi-host or compose session")
     p.add_argument("--listen", action="append", help="endpoint, repeatable (default tcp/0.0.0.0:7447)")

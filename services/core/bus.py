@@ -30,6 +30,7 @@ class BusConfig(Frozen):
     connect: list[str] = Field(default_factory=list)  # endpoints to connect to (a router or peer)
     multicast_scouting: bool = False  # off by default: sessions find each other only via `connect`
     namespace: str = "vs"  # prefix of every key expression, so sessions can share a network
+    connect_timeout_s: float = 30.0  # keep retrying `connect` endpoints this long at start-up (router still booting)
 
 
 def free_tcp_port() -> int:
@@ -46,6 +47,9 @@ def _zenoh_config(cfg: BusConfig) -> zenoh.Config:
     listen = cfg.listen or (["tcp/127.0.0.1:0"] if cfg.mode == "peer" else [])
     conf.insert_json5("listen/endpoints", json.dumps(listen))
     conf.insert_json5("connect/endpoints", json.dumps(list(cfg.connect)))
+    if cfg.connect:
+        conf.insert_json5("connect/timeout_ms", json.dumps(int(cfg.connect_timeout_s * 1000)))
+        conf.insert_json5("connect/retry", "{period_init_ms: 100, period_max_ms: 1000, period_increase_factor: 2}")
     conf.insert_json5("scouting/multicast/enabled", json.dumps(cfg.multicast_scouting))
     return conf
 
@@ -80,7 +84,12 @@ class Bus:
 
     def __init__(self, cfg: BusConfig):
         self.cfg = cfg
-        self.session = zenoh.open(_zenoh_config(cfg))
+        try:
+            self.session = zenoh.open(_zenoh_config(cfg))
+        except zenoh.ZError as exc:
+            where = ", ".join(cfg.connect) or "(no endpoint)"
+            raise ConnectionError(f"cannot open a Zenoh {cfg.mode} session to {where} "
+                                  f"within {cfg.connect_timeout_s:.0f}s (is the router running?): {exc}") from exc
         self._keep: list[object] = []  # declared entities live as long as the bus
 
     # -- context management -------------------------------------------------------------

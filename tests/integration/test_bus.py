@@ -78,3 +78,27 @@ def test_peer_mode_defaults_to_loopback():
     cfg = BusConfig(mode="peer")
     with Bus(cfg) as bus:
         assert not bus.session.is_closed()
+
+
+def test_client_waits_for_a_router_that_starts_late():
+    from services.core.bus import free_tcp_port, router
+
+    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+    hub: list = []
+    starter = threading.Timer(1.0, lambda: hub.append(router([endpoint])))
+    starter.start()
+    try:
+        with Bus(BusConfig(mode="client", connect=[endpoint], connect_timeout_s=20)) as bus:
+            assert not bus.session.is_closed()
+    finally:
+        starter.join()
+        for h in hub:
+            h.close()
+
+
+def test_unreachable_router_is_a_clear_error():
+    from services.core.bus import free_tcp_port
+
+    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+    with pytest.raises(ConnectionError, match="is the router running"):
+        Bus(BusConfig(mode="client", connect=[endpoint], connect_timeout_s=0.5))

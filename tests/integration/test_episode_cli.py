@@ -1,0 +1,44 @@
+"""`viewscale episode` drives a real recorder process over a real router."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def cli(endpoint: str, *args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "services.cli", "episode", *args, "--connect", endpoint],
+                          cwd=ROOT, capture_output=True, text=True, timeout=60)
+
+
+def test_start_status_stop_and_errors(zenoh_endpoint, tmp_path):
+    rec = subprocess.Popen(
+        [sys.executable, "-m", "services.recorder", "--set", "bus.mode=client", "--set", f"bus.connect=[{zenoh_endpoint}]",
+         "--set", f"out_dir={tmp_path}"], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert rec.stdout.readline().startswith("ready recorder")
+        started = cli(zenoh_endpoint, "start", "--id", "by-hand", "--task", "pour", "--rig", "five15")
+        assert started.returncode == 0, started.stderr
+        assert "recording" in started.stdout
+        again = cli(zenoh_endpoint, "start", "--id", "other")
+        assert again.returncode == 2 and again.stderr.startswith("error:")
+        assert "recording" in cli(zenoh_endpoint, "status").stdout
+        stopped = cli(zenoh_endpoint, "stop", "--id", "by-hand")
+        assert stopped.returncode == 0, stopped.stderr
+        assert "by-hand" in stopped.stdout
+        assert (tmp_path / "by-hand.mcap").exists()
+        assert cli(zenoh_endpoint, "stop").returncode == 2  # nothing is recording now
+    finally:
+        rec.terminate()
+        rec.wait(timeout=20)
+
+
+def test_no_router_is_one_error_line(tmp_path):
+    from services.core.bus import free_tcp_port
+
+    proc = cli(f"tcp/127.0.0.1:{free_tcp_port()}", "status", "--timeout", "1")
+    assert proc.returncode == 2
+    assert proc.stderr.startswith("error: cannot open a Zenoh client session") and "Traceback" not in proc.stderr
