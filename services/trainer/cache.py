@@ -27,10 +27,11 @@ import json
 import os
 import shutil
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Iterator
 
 import cv2
 import numpy as np
@@ -119,7 +120,8 @@ class BuildResult:
     built: int = 0  # episodes decoded in this run
     reused: int = 0  # episodes kept from an earlier build
     frames: int = 0  # frames decoded into the cache in this run
-    seconds: float = 0.0
+    seconds: float = 0.0  # the whole build
+    episode_seconds: float = 0.0  # reading, aligning, decoding and writing episodes (the part that scales)
     summary: dict[str, Any] = field(default_factory=dict)
 
 
@@ -168,11 +170,16 @@ _REDUCED = {8: cv2.IMREAD_REDUCED_COLOR_8, 4: cv2.IMREAD_REDUCED_COLOR_4, 2: cv2
             1: cv2.IMREAD_COLOR}
 
 
+class FrameSizeError(ValueError):
+    pass
+
+
 def decode_resized(data: bytes, size: tuple[int, int], src: tuple[int, int]) -> np.ndarray | None:
-    """JPEG -> (H, W, 3) uint8 RGB at ``size`` (W, H), or None if undecodable.
+    """JPEG of ``src`` (W, H) pixels -> (H, W, 3) uint8 RGB at ``size`` (W, H); None if undecodable.
 
     When the source is at least twice the target, libjpeg decodes at 1/2, 1/4 or 1/8 scale
-    directly (DCT scaling), which is much faster than decoding in full and shrinking.
+    directly (DCT scaling), which is much faster than decoding in full and shrinking. A frame
+    whose size is not ``src`` raises FrameSizeError (its calibration would not fit it).
     """
     w, h = size
     factor = 1
@@ -185,6 +192,9 @@ def decode_resized(data: bytes, size: tuple[int, int], src: tuple[int, int]) -> 
     bgr = cv2.imdecode(np.frombuffer(data, np.uint8), _REDUCED[factor])
     if bgr is None:
         return None
+    expect = (-(-src[0] // factor), -(-src[1] // factor))  # libjpeg rounds scaled sizes up
+    if (bgr.shape[1], bgr.shape[0]) != expect:
+        raise FrameSizeError(f"{bgr.shape[1] * factor}x{bgr.shape[0] * factor}")
     if bgr.shape[1] != w or bgr.shape[0] != h:
         bgr = cv2.resize(bgr, (w, h), interpolation=cv2.INTER_AREA)
     return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
@@ -211,17 +221,20 @@ def build_episode(src: Path, sha: str, dest: Path, params: BuildParams) -> dict[
     for v in params.views:
         calib = ep.calib.get(v)
         pd = make_pseudo_demo(al, v, params.space, params.state_frame, calib, source=src.name)
-        # Source size: the calibration's, checked against the first frame (K depends on it).
-        first = ep.frame_data[v][int(pd.frame_index[0])] if len(pd.tick) else None
-        got = _jpeg_size(first) if first is not None else None
-        if calib is not None and got is not None and got != (calib.width, calib.height):
-            raise EpisodeError(f"{src.name}: camera {v!r} frames are {got[0]}x{got[1]} but its calibration "
-                               f"says {calib.width}x{calib.height}")
-        src_size = (calib.width, calib.height) if calib is not None else (got or size)
+        # Source size: the calibration's (K belongs to it); without one, the first frame's.
+        if calib is not None:
+            src_size = (calib.width, calib.height)
+        else:
+            firsts = (_jpeg_size(ep.frame_data[v][int(fi)]) for fi in pd.frame_index)
+            src_size = next((s for s in firsts if s is not None), size)
         frames = np.zeros((len(pd.tick), size[1], size[0], 3), np.uint8)
         ok = np.ones(len(pd.tick), bool)
         for row, fi in enumerate(pd.frame_index):
-            img = decode_resized(ep.frame_data[v][int(fi)], size, src_size)
+            try:
+                img = decode_resized(ep.frame_data[v][int(fi)], size, src_size)
+            except FrameSizeError as exc:
+                raise EpisodeError(f"{src.name}: camera {v!r} frame at tick {int(pd.tick[row])} is {exc} "
+                                   f"but the camera's calibration says {src_size[0]}x{src_size[1]}") from None
             if img is None:
                 ok[row] = False
             else:
@@ -260,6 +273,45 @@ def build_episode(src: Path, sha: str, dest: Path, params: BuildParams) -> dict[
     }
     _write_json(dest / "episode.json", info)
     return info
+
+
+
+def _build_one(src: Path, sha: str, tmp: Path, params: BuildParams) -> tuple[dict | None, Exception | None, float]:
+    t = time.perf_counter()
+    try:
+        return build_episode(src, sha, tmp, params), None, time.perf_counter() - t
+    except EpisodeError as exc:
+        shutil.rmtree(tmp, ignore_errors=True)
+        return None, exc, time.perf_counter() - t
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
+def _build_many(todo: list[Path], hashes: dict[Path, str], root: Path, params: BuildParams,
+                jobs: int) -> Iterator[tuple[dict | None, Exception | None, float]]:
+    """Build ``todo`` into ``root/.tmp-<stem>``, yielding results in order; closing it cancels the rest.
+
+    Threads, not processes: JPEG decoding, resizing, zstd and file writes release the GIL, and
+    threads start instantly.
+    """
+    tmps = [root / f".tmp-{src.stem}" for src in todo]
+    try:
+        if jobs <= 1 or len(todo) <= 1:
+            for src, tmp in zip(todo, tmps):
+                yield _build_one(src, hashes[src], tmp, params)
+            return
+        with ThreadPoolExecutor(max_workers=min(jobs, len(todo)), thread_name_prefix="dataset-build") as pool:
+            futures = [pool.submit(_build_one, src, hashes[src], tmp, params) for src, tmp in zip(todo, tmps)]
+            try:
+                for f in futures:
+                    yield f.result()
+            finally:
+                for f in futures:
+                    f.cancel()
+    finally:
+        for tmp in tmps:  # anything not renamed into place by the caller
+            shutil.rmtree(tmp, ignore_errors=True)
 
 
 # -- the dataset store (read side, torch-free) --------------------------------------------------
@@ -381,8 +433,12 @@ def build_dataset(
     skip_bad: bool = False,
     force: bool = False,
     contact_episodes: int = 3,
+    jobs: int = 1,
 ) -> BuildResult:
-    """Build (or bring up to date) the dataset at ``out`` from the episodes under ``raw``."""
+    """Build (or bring up to date) the dataset at ``out`` from the episodes under ``raw``.
+
+    ``jobs`` > 1 decodes that many episodes at once (threads); results are taken in order.
+    """
     t0 = time.perf_counter()
     out = Path(out)
     sources = find_episodes(raw)
@@ -417,46 +473,49 @@ def build_dataset(
         shutil.rmtree(leftover)
 
     key = params.array_key()
-    episodes: list[dict[str, Any]] = []
-    skipped: list[dict[str, str]] = []
-    built = reused = frames = 0
-    for i, src in enumerate(sources, 1):
+    reuse: dict[Path, dict[str, Any]] = {}
+    for src in sources:
         dest = out / EPISODES / src.stem
-        info = None
         if dest.is_dir() and not force:
             try:
                 prev = json.loads((dest / "episode.json").read_text())
                 if prev["source"]["sha256"] == hashes[src] and prev["key"] == key:
-                    info = prev
+                    reuse[src] = prev
             except (OSError, ValueError, KeyError):
-                info = None
-        if info is not None:
-            reused += 1
-            progress(f"[{i}/{len(sources)}] {src.name}: unchanged, reused")
-        else:
-            t = time.perf_counter()
-            tmp = out / EPISODES / f".tmp-{src.stem}"
-            try:
-                info = build_episode(src, hashes[src], tmp, params)
-            except EpisodeError as exc:
-                shutil.rmtree(tmp, ignore_errors=True)
-                if not skip_bad:
-                    raise
-                skipped.append({"file": str(src), "error": str(exc)})
-                progress(f"[{i}/{len(sources)}] {src.name}: SKIPPED: {exc}")
-                continue
-            except BaseException:
-                shutil.rmtree(tmp, ignore_errors=True)
-                raise
-            if dest.exists():
-                shutil.rmtree(dest)
-            os.replace(tmp, dest)
-            built += 1
-            frames += info["frames_decoded"]
-            rows = ", ".join(f"{v} {info['views'][v]['rows']}" for v in params.views)
-            progress(f"[{i}/{len(sources)}] {src.name}: {info['ticks']} ticks -> rows {rows} "
-                     f"({time.perf_counter() - t:.1f} s)")
-        episodes.append({"id": info["episode_id"], "dir": src.stem, "info": info})
+                pass
+    todo = [s for s in sources if s not in reuse]
+    t_eps = time.perf_counter()
+    results = _build_many(todo, hashes, out / EPISODES, params, jobs)
+
+    episodes: list[dict[str, Any]] = []
+    skipped: list[dict[str, str]] = []
+    built = reused = frames = 0
+    try:
+        for i, src in enumerate(sources, 1):
+            info = reuse.get(src)
+            if info is not None:
+                reused += 1
+                progress(f"[{i}/{len(sources)}] {src.name}: unchanged, reused")
+            else:
+                info, err, secs = next(results)
+                if err is not None:
+                    if not skip_bad:
+                        raise err
+                    skipped.append({"file": str(src), "error": str(err)})
+                    progress(f"[{i}/{len(sources)}] {src.name}: SKIPPED: {err}")
+                    continue
+                dest = out / EPISODES / src.stem
+                if dest.exists():
+                    shutil.rmtree(dest)
+                os.replace(out / EPISODES / f".tmp-{src.stem}", dest)
+                built += 1
+                frames += info["frames_decoded"]
+                rows = ", ".join(f"{v} {info['views'][v]['rows']}" for v in params.views)
+                progress(f"[{i}/{len(sources)}] {src.name}: {info['ticks']} ticks -> rows {rows} ({secs:.1f} s)")
+            episodes.append({"id": info["episode_id"], "dir": src.stem, "info": info})
+    finally:
+        results.close()  # stops the workers and removes unfinished temporary directories
+    episode_seconds = time.perf_counter() - t_eps
 
     keep = {e["dir"] for e in episodes}
     for d in (out / EPISODES).iterdir():
@@ -527,8 +586,8 @@ def build_dataset(
     manifest["complete"] = True
     manifest["built_at"] = datetime.now(timezone.utc).isoformat(timespec="seconds")
     _write_json(manifest_path, manifest)
-    return BuildResult(out, False, built=built, reused=reused, frames=frames,
-                       seconds=time.perf_counter() - t0, summary=summary)
+    return BuildResult(out, False, built=built, reused=reused, frames=frames, seconds=time.perf_counter() - t0,
+                       episode_seconds=episode_seconds, summary=summary)
 
 
 def decode_calib(d: dict[str, Any] | None, name: str) -> CameraCalib | None:

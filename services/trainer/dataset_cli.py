@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from pathlib import Path
 from typing import Any
@@ -99,7 +100,8 @@ def _build(args: argparse.Namespace) -> int:
             pad_actions=args.pad_actions,
         )
         result = build_dataset([Path(p) for p in args.raw], Path(args.out), params, progress=progress,
-                               skip_bad=args.skip_bad, force=args.force, contact_episodes=args.contact_episodes)
+                               skip_bad=args.skip_bad, force=args.force, contact_episodes=args.contact_episodes,
+                               jobs=args.jobs)
     except (DatasetError, EpisodeError) as exc:
         return _err(str(exc))
     s = result.summary
@@ -158,6 +160,8 @@ def add_dataset_commands(subparsers: argparse._SubParsersAction) -> None:
                    help="edge: repeat the edge action (diffusion_policy, default); hold: zero motion")
     b.add_argument("--skip-bad", action="store_true", help="skip unreadable episodes instead of stopping")
     b.add_argument("--force", action="store_true", help="rebuild every episode even if nothing changed")
+    b.add_argument("--jobs", type=int, default=min(8, os.cpu_count() or 1),
+                   help="episodes decoded at once (default: CPU cores, at most 8)")
     b.add_argument("--contact-episodes", type=int, default=3, help="episodes on the contact sheet (0: none)")
     b.add_argument("--json", action="store_true", help="print the summary as one JSON line")
     b.set_defaults(func=_build)

@@ -77,6 +77,7 @@ def write_episode(
     stale_actions: list[int] = (),
     no_calibration: list[str] = (),
     success: bool = True,
+    calib_size: tuple[int, int] | None = None,
 ) -> Path:
     """Write ``<out_dir>/<episode_id>.mcap``; returns its path."""
     rg = load_rig(rig)
@@ -96,7 +97,8 @@ def write_episode(
                 if c in no_calibration:
                     continue
                 cam = rg.cameras[c]
-                w.write_message(topics.camera_calibration(c).mcap_topic, cam.calibration_msg(width, height, stamp),
+                cw, ch = calib_size or (width, height)
+                w.write_message(topics.camera_calibration(c).mcap_topic, cam.calibration_msg(cw, ch, stamp),
                                 stamp, stamp)
                 w.write_message(topics.camera_pose(c).mcap_topic, cam.pose_msg(stamp), stamp, stamp)
         for c in cams:

@@ -245,14 +245,15 @@ def test_a_failed_build_leaves_no_dataset_that_looks_complete(tmp_path):
     bad = write_episode(raw, "ep1", 24, cameras=["F"])
     data = bad.read_bytes()
     bad.write_bytes(data[: len(data) // 2] + b"\x00" * 64 + data[len(data) // 2 + 64:])  # damage a chunk
-    with pytest.raises(EpisodeError, match="ep1.mcap"):
-        build_dataset(raw, out, BuildParams(views=("F",), image_size=(32, 24)), contact_episodes=0)
+    write_episode(raw, "ep2", 24, cameras=["F"], seed=2)
+    with pytest.raises(EpisodeError, match="ep1.mcap"):  # raised in a worker thread, reported here
+        build_dataset(raw, out, BuildParams(views=("F",), image_size=(32, 24)), contact_episodes=0, jobs=2)
     with pytest.raises(DatasetError, match="not a complete dataset"):
         load_dataset(out)
     assert not list((out / "episodes").glob(".tmp-*"))
     # --skip-bad builds from what is readable and says what it skipped
     r = build_dataset(raw, out, BuildParams(views=("F",), image_size=(32, 24)), skip_bad=True, contact_episodes=0)
-    assert r.summary["episodes"] == 1 and "ep1.mcap" in r.summary["skipped_episodes"][0]["error"]
+    assert r.summary["episodes"] == 2 and "ep1.mcap" in r.summary["skipped_episodes"][0]["error"]
     assert len(load_dataset(out, split="all")) > 0
 
 
@@ -279,6 +280,9 @@ def test_bad_input_gets_a_clear_error_naming_the_file_or_view(tmp_path):
         build_dataset([tmp_path / "junk.mcap"], tmp_path / "y", BuildParams(views=("F",)))
     with pytest.raises(DatasetError, match="does not exist"):
         load_dataset(tmp_path / "nothing")
+    write_episode(tmp_path / "sized", "sized", 24, cameras=["F"], calib_size=(128, 96))
+    with pytest.raises(EpisodeError, match=r"sized\.mcap.*'F'.*64x48.*128x96"):
+        build_dataset(tmp_path / "sized", tmp_path / "z", BuildParams(views=("F",), image_size=(32, 24)))
 
 
 def test_split_is_by_episode_deterministic_and_disjoint(camera_ds):
@@ -296,7 +300,7 @@ def test_split_is_by_episode_deterministic_and_disjoint(camera_ds):
 def test_cli_build_and_info(raw_dir, tmp_path, capsys):
     out = tmp_path / "cli"
     rc = viewscale(["dataset", "build", "--raw", str(raw_dir), "--views", "F,FR", "--space", "camera",
-                    "--out", str(out), "--image-size", "32x24", "--contact-episodes", "1"])
+                    "--out", str(out), "--image-size", "32x24", "--contact-episodes", "1", "--jobs", "2"])
     cap = capsys.readouterr()
     assert rc == 0
     assert "[3/3] ep002.mcap" in cap.err  # per-episode progress
@@ -307,7 +311,7 @@ def test_cli_build_and_info(raw_dir, tmp_path, capsys):
     assert viewscale(["dataset", "info", str(out), "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["samples"] > 0
     for argv, needle in ((["--views", "F,NOPE"], "'NOPE'"), (["--views", ","], "empty view selection")):
-        rc = viewscale(["dataset", "build", "--raw", str(raw_dir), "--out", str(tmp_path / "bad"), *argv])
+        rc = viewscale(["dataset", "build", "--raw", str(raw_dir), "--out", str(tmp_path / "bad"), "--jobs", "1", *argv])
         err = capsys.readouterr().err
         last = err.strip().splitlines()[-1]
         assert rc == 2 and needle in last and last.startswith("error:") and "Traceback" not in err
