@@ -176,10 +176,12 @@ class MultiCameraRenderer:
             if cam.fixedcamid < 0:
                 raise ValueError(f"camera {name!r} is not in the model")
             self._cams[name] = cam
+        # The GL context is current only inside each call (``as_current``), so whichever thread
+        # renders next can take it.
         self._gl = mujoco.GLContext(width, height)
-        self._gl.make_current()
-        self._ctx = mujoco.MjrContext(model, mujoco.mjtFontScale.mjFONTSCALE_100)
-        mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN, self._ctx)
+        with self._gl.as_current():
+            self._ctx = mujoco.MjrContext(model, mujoco.mjtFontScale.mjFONTSCALE_100)
+            mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN, self._ctx)
         self._scene = mujoco.MjvScene(model, maxgeom=1000)
         self._scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = 0
         self._scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = 0
@@ -190,26 +192,26 @@ class MultiCameraRenderer:
 
     def render(self, data: mujoco.MjData) -> dict[str, np.ndarray]:
         """Camera name -> (H, W, 3) uint8 RGB of ``data`` as it is (call mj_forward first)."""
-        self._gl.make_current()
         out: dict[str, np.ndarray] = {}
         first = True
-        for name, cam in self._cams.items():
-            if first:
-                mujoco.mjv_updateScene(
-                    self._model, data, self._option, self._perturb, cam, mujoco.mjtCatBit.mjCAT_ALL, self._scene
-                )
-                first = False
-            else:
-                mujoco.mjv_updateCamera(self._model, data, cam, self._scene)
-                mujoco.mjv_makeLights(self._model, data, self._scene)  # the headlight moves with the camera
-            mujoco.mjr_render(self._rect, self._scene, self._ctx)
-            mujoco.mjr_readPixels(self._buf, None, self._rect, self._ctx)
-            out[name] = np.flipud(self._buf).copy()  # OpenGL rows run bottom-up
+        with self._gl.as_current():
+            for name, cam in self._cams.items():
+                if first:
+                    mujoco.mjv_updateScene(
+                        self._model, data, self._option, self._perturb, cam, mujoco.mjtCatBit.mjCAT_ALL, self._scene
+                    )
+                    first = False
+                else:
+                    mujoco.mjv_updateCamera(self._model, data, cam, self._scene)
+                    mujoco.mjv_makeLights(self._model, data, self._scene)  # the headlight moves with the camera
+                mujoco.mjr_render(self._rect, self._scene, self._ctx)
+                mujoco.mjr_readPixels(self._buf, None, self._rect, self._ctx)
+                out[name] = np.flipud(self._buf).copy()  # OpenGL rows run bottom-up
         return out
 
     def close(self) -> None:
         if self._ctx is not None:
-            self._gl.make_current()
-            self._ctx.free()
+            with self._gl.as_current():
+                self._ctx.free()
             self._ctx = None
             self._gl.free()

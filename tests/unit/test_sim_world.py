@@ -2,6 +2,7 @@
 the action limits, and clear errors on bad input."""
 
 import math
+import threading
 import os
 
 os.environ.setdefault("MUJOCO_GL", "egl")
@@ -233,3 +234,16 @@ def _rotmat(v) -> np.ndarray:
     m = np.empty(9)
     mujoco.mju_quat2Mat(m, quat)
     return m.reshape(3, 3)
+
+
+def test_any_thread_may_render_next(front):
+    # A service may render from a worker thread after the main thread did (never at once).
+    with SimWorld("lift", front) as w:
+        w.reset(0)
+        here = w.render()
+        there: dict = {}
+        worker = threading.Thread(target=lambda: there.update(w.render()))
+        worker.start()
+        worker.join()
+        assert np.array_equal(there["F"], here["F"])
+        assert np.array_equal(w.render()["F"], here["F"])
