@@ -9,16 +9,15 @@ dedupe frames). For each workload the tick rate doubles until an episode shows d
 source cannot reach the rate), then bisects between the last clean and the first dropping rate.
 An episode is clean when nothing was dropped and every channel holds all the ticks sent. Raw disk
 speed is measured first in the same directory: 1 MiB writes then fsync, like the recorder's
-chunked writes plus its close. Prints one JSON line and appends a row to bench/RESULTS.md.
+chunked writes plus its close. Prints one JSON line and appends it to bench/RESULTS.md
+(``bench/common.py``).
 """
 
 from __future__ import annotations
 
 import argparse
-import datetime as dt
 import json
 import os
-import platform
 import shutil
 import subprocess
 import sys
@@ -27,11 +26,11 @@ import time
 from pathlib import Path
 
 import numpy as np
-import psutil
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from bench.common import machine, report  # noqa: E402
 from services.core import topics  # noqa: E402
 from services.core.bus import Bus, BusConfig, free_tcp_port, router  # noqa: E402
 from services.core.tensors import compressed_image  # noqa: E402
@@ -59,19 +58,6 @@ def disk_write_mbps(directory: Path, total_mb: int = 512) -> float:
     elapsed = time.perf_counter() - t
     path.unlink()
     return total_mb * (1 << 20) / elapsed / 1e6
-
-
-def machine() -> str:
-    cpu = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    mem = psutil.virtual_memory().total / 2**30
-    return f"{cpu}, {os.cpu_count()} cores, {mem:.0f} GiB RAM, {platform.system()} {platform.release()}"
 
 
 class Harness:
@@ -196,7 +182,12 @@ def sustained(h: Harness, frames, cameras, seconds: float, start_hz: float, max_
                 good, lo = r, mid
             else:
                 hi = mid
-    limited = "recorder (drops above this)" if bad is not None else "source (could not publish faster)"
+    if good is None:
+        limited = "recorder (drops even at the lowest rate tried)"
+    elif bad is not None:
+        limited = "recorder (drops above this)"
+    else:
+        limited = "source (could not publish faster)"
     best = good or trials[0]
     return {"sustained": best, "limited_by": limited, "trials": len(trials)}
 
@@ -213,6 +204,7 @@ def main() -> int:
     shutil.rmtree(out_dir, ignore_errors=True)
     out_dir.mkdir(parents=True)
     rng = np.random.default_rng(0)
+    load_before = round(os.getloadavg()[0], 2)
     disk = disk_write_mbps(out_dir)
     frames = make_frames(args.cameras, 64, args.size, rng)
     cameras = [f"C{c}" for c in range(args.cameras)]
@@ -227,11 +219,9 @@ def main() -> int:
         finally:
             h.close()
     result = {
-        "bench": "recorder_throughput",
-        "date": dt.datetime.now().astimezone().isoformat(timespec="seconds"),
-        "machine": machine(),
         "disk_write_MBps": round(disk, 1),
         "workload": f"per tick: 1 RobotState + {args.cameras} JPEG {args.size}x{args.size} (~{frame_kb:.1f} kB)",
+        "load_avg_1m": [load_before, round(os.getloadavg()[0], 2)],  # shared machine: before, after
         "results": {
             name: {
                 "limited_by": r["limited_by"],
@@ -244,25 +234,11 @@ def main() -> int:
             for name, r in runs.items()
         },
     }
-    print(json.dumps(result), flush=True)
-    if not args.no_results:
-        append_row(result)
+    if args.no_results:
+        print(json.dumps({"bench": "recorder_throughput", "machine": machine(), **result}), flush=True)
+    else:
+        report("recorder_throughput", result)
     return 0
-
-
-def append_row(result: dict) -> None:
-    path = ROOT / "bench" / "RESULTS.md"
-    if not path.exists():
-        path.write_text("# Benchmark results\n\nAppend-only: one row per run, newest last. Each bench prints one JSON "
-                        "line; the row keeps its headline numbers.\n\n| date | bench | machine | result |\n"
-                        "|---|---|---|---|\n")
-    parts = [f"disk {result['disk_write_MBps']} MB/s"]
-    for name, r in result["results"].items():
-        parts.append(f"{name}: {r['msgs_per_s']:.0f} msg/s, {r['MBps']:.1f} MB/s ({r['limited_by'].split(' ')[0]}-bound)")
-    row = (f"| {result['date']} | {result['bench']} | {result['machine']} | {result['workload']}; "
-           + "; ".join(parts) + " |\n")
-    with open(path, "a") as f:
-        f.write(row)
 
 
 if __name__ == "__main__":
