@@ -16,6 +16,7 @@ agree with ``Camera.project`` exactly: the calibration is exact by construction.
 from __future__ import annotations
 
 import os
+from xml.sax.saxutils import quoteattr
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 
@@ -97,7 +98,7 @@ def _camera_xml(rig: Rig) -> str:
     for cam in rig.cameras.values():
         pos = " ".join(f"{v:.17g}" for v in cam.position)
         xyaxes = " ".join(f"{v:.17g}" for v in cam.mujoco_xyaxes)
-        lines.append(f'    <camera name="{cam.name}" pos="{pos}" xyaxes="{xyaxes}" fovy="{cam.fovy_deg:.17g}"/>')
+        lines.append(f'    <camera name={quoteattr(cam.name)} pos="{pos}" xyaxes="{xyaxes}" fovy="{cam.fovy_deg:.17g}"/>')
     return "\n".join(lines)
 
 
