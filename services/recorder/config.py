@@ -12,7 +12,7 @@ from services.core.config import Frozen
 
 class RecorderConfig(Frozen):
     bus: BusConfig = BusConfig()  # zenoh session the recorder subscribes on
-    out_dir: Path = Path("data/episodes")  # one <episode_id>.mcap per episode goes here
+    out_dir: Path = Path("data/raw")  # one <episode_id>.mcap per episode goes here
     queue_size: int = Field(256, ge=1)  # per-channel bound; samples beyond it are dropped and counted
     chunk_size: int = Field(1 << 20, ge=1024)  # uncompressed bytes per MCAP chunk: the most a kill -9 loses
     flush_interval_s: float = Field(1.0, gt=0)  # also cut a chunk after this long, bounding loss on slow topics

@@ -1,7 +1,7 @@
 """Read a recorded episode back: its metadata and every message, decoded.
 
     from services.recorder.reader import read_episode
-    ep = read_episode("data/episodes/ep0001.mcap")
+    ep = read_episode("data/raw/ep0001.mcap")
     ep.metadata["achieved_hz"], ep.metadata["frames"], ep.metadata["flags"]
     for rec in ep.messages("/camera/F/image"):   # in log_time order
         rec.publish_time, rec.log_time, rec.sequence, rec.msg   # msg: foxglove CompressedImage

@@ -1,6 +1,6 @@
 """Recover the readable part of an episode file a killed recorder left behind.
 
-    python -m services.recorder.recover data/episodes/ep0001.mcap.part [...]
+    python -m services.recorder.recover data/raw/ep0001.mcap.part [...]
 
 A ``.part`` file has a header, the ``episode_start`` record and whole chunks up to the one the
 recorder was filling when it died; that last chunk and the summary/footer are missing. This
