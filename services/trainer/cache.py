@@ -589,6 +589,3 @@ def build_dataset(
     return BuildResult(out, False, built=built, reused=reused, frames=frames, seconds=time.perf_counter() - t0,
                        episode_seconds=episode_seconds, summary=summary)
 
-
-def decode_calib(d: dict[str, Any] | None, name: str) -> CameraCalib | None:
-    return None if d is None else CameraCalib.from_json(name, d)

@@ -18,7 +18,7 @@ from services.core.rig import load_rig
 from services.trainer.action_spaces import from_space, rot6d_to_matrix
 from services.trainer.cache import BuildParams, DatasetError, DatasetStore, build_dataset
 from services.trainer.dataset import load_dataset, split_episodes
-from services.trainer.episodes import EpisodeError
+from services.trainer.episodes import CameraCalib, EpisodeError
 
 VIEWS = ("F", "FL", "FR")
 N = 40
@@ -138,6 +138,9 @@ def test_meta_and_manifest_describe_the_build(camera_ds, raw_dir):
         K = np.asarray(meta["cameras"][v]["K"])
         np.testing.assert_allclose(K, rig.cameras[v].K(64, 48), atol=1e-6)  # same size: K unchanged
         np.testing.assert_allclose(meta["cameras"][v]["position"], rig.cameras[v].position, atol=1e-6)
+        calib = CameraCalib.from_json(v, meta["cameras"][v])  # rebuilds the camera at inference
+        np.testing.assert_allclose(calib.camera.R_ext, rig.cameras[v].R_ext, atol=1e-9)
+        np.testing.assert_allclose(calib.K_at(32, 24), rig.cameras[v].K(32, 24), atol=1e-9)
     manifest = json.loads((camera_ds / "manifest.json").read_text())
     assert manifest["complete"]
     for src in manifest["sources"]:
@@ -317,3 +320,21 @@ def test_cli_build_and_info(raw_dir, tmp_path, capsys):
         assert rc == 2 and needle in last and last.startswith("error:") and "Traceback" not in err
     assert viewscale(["dataset", "info", str(tmp_path / "bad")]) == 2
     assert "not a complete dataset" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("space,state_frame", [("camera", "auto"), ("base", "auto"), ("eef", "auto"),
+                                               ("camera", "base"), ("eef", "camera")])
+def test_contact_sheet_action_path_retraces_the_state_path(raw_dir, tmp_path, space, state_frame):
+    """The generated episodes move exactly by their actions, so the path the contact sheet draws from
+    a pseudo-demo's actions (in their own frame) must land on the EEF states it draws in white."""
+    from services.trainer.contact_sheet import trajectories
+
+    out = tmp_path / "ds"
+    build_dataset(raw_dir, out, BuildParams(views=("FL",), space=space, state_frame=state_frame,
+                                            image_size=(32, 24)), contact_episodes=1)
+    ds = DatasetStore(out)
+    d = ds.demos[0]
+    pos_cam, path = trajectories(d.load("state"), d.load("action"), d.load("ends"), space,
+                                 ds.meta["state_frame"], d.calib)
+    np.testing.assert_allclose(pos_cam, load_rig("five15").cameras["FL"].to_camera(trajectory(N, 0)[1]), atol=1e-5)
+    np.testing.assert_allclose(path, pos_cam, atol=1e-4)
