@@ -6,6 +6,7 @@ The proto path mirrors the generated module path, so protoc writes imports such 
 
 from __future__ import annotations
 
+import re
 import sys
 from pathlib import Path
 
@@ -19,17 +20,14 @@ PROTO = ROOT / "proto"
 def generate(out_dir: Path = ROOT) -> list[Path]:
     sources = sorted((PROTO / "services" / "pb").glob("*.proto"))
     include = Path(grpc_tools.__file__).parent / "_proto"
-    args = [
-        "grpc_tools.protoc",
-        f"-I{PROTO}",
-        f"-I{include}",
-        f"--python_out={out_dir}",
-        f"--pyi_out={out_dir}",
-        f"--grpc_python_out={out_dir}",
-        *[str(s) for s in sources],
-    ]
-    if protoc.main(args) != 0:
+    base = ["grpc_tools.protoc", f"-I{PROTO}", f"-I{include}"]
+    messages = [*base, f"--python_out={out_dir}", f"--pyi_out={out_dir}", *[str(s) for s in sources]]
+    if protoc.main(messages) != 0:
         raise SystemExit("protoc failed")
+    # gRPC stubs only for files that declare a service (the rest would be empty modules).
+    with_services = [str(s) for s in sources if re.search(r"^service\s", s.read_text(), re.MULTILINE)]
+    if with_services and protoc.main([*base, f"--grpc_python_out={out_dir}", *with_services]) != 0:
+        raise SystemExit("protoc (grpc) failed")
     return sources
 
 
