@@ -65,6 +65,7 @@ class DiffusionPolicy(nn.Module):
     def __init__(self, cfg: ModelConfig, load_pretrained: bool = True):
         super().__init__()
         self.cfg = cfg
+        self.channels_last = False  # NHWC images into the encoder (faster convs on GPU); see use_channels_last
         self.encoder = build_encoder(cfg.encoder, tuple(cfg.image_size), load_pretrained=load_pretrained)
         self.noise_model = ConditionalUnet1D(
             input_dim=cfg.action_dim,
@@ -81,7 +82,10 @@ class DiffusionPolicy(nn.Module):
         obs: (B, To, 3, H, W) in [-1, 1]; state: (B, To, Ds) normalised -> cond: (B, To * (F + Ds)).
         """
         B, To = obs.shape[:2]
-        feats = self.encoder(obs.flatten(0, 1))  # (B*To, F)
+        img = obs.flatten(0, 1)  # (B*To, 3, H, W)
+        if self.channels_last:
+            img = img.contiguous(memory_format=torch.channels_last)
+        feats = self.encoder(img)  # (B*To, F)
         feats = feats.view(B, To, -1)  # (B, To, F)
         if self.cfg.state_dim:
             if state is None:
@@ -97,6 +101,12 @@ class DiffusionPolicy(nn.Module):
         if not torch.is_tensor(k) or k.dim() == 0:
             k = torch.full((x_k.shape[0],), int(k), device=x_k.device, dtype=torch.long)
         return self.noise_model(x_k, k.to(x_k.device), cond)  # (B, Tp, Da)
+
+    def use_channels_last(self) -> "DiffusionPolicy":
+        """Store the encoder's conv weights and feed its images as NHWC (the layout cuDNN prefers)."""
+        self.encoder.to(memory_format=torch.channels_last)
+        self.channels_last = True
+        return self
 
     def num_parameters(self, trainable_only: bool = False) -> int:
         return sum(p.numel() for p in self.parameters() if p.requires_grad or not trainable_only)

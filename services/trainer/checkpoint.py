@@ -1,0 +1,214 @@
+"""Checkpoints: safetensors plus JSON, never a pickle.
+
+A run directory holds ``checkpoints/step_NNNNNNN/`` folders and a ``latest`` file naming the
+newest complete one (written last, atomically, so a crash mid-save leaves the previous one
+current). Each folder has:
+
+- ``model.safetensors``: the weights to serve (the EMA weights when EMA is on);
+- ``policy.json``: everything needed to use them: the model config, the normaliser (as
+  ``Normalizer.to_dict`` writes it), the action space, the training views with their rig
+  calibration (K, R_ext, position), and where the data came from;
+- ``train_state.safetensors`` + ``train_state.json``: what resuming needs besides that: the raw
+  (non-averaged) weights, AdamW's moments, the RNG states, and the step.
+
+``load_policy`` reads only the first two; nothing is unpickled anywhere.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+from safetensors.torch import load_file, save_file
+
+from services.policy.model.policy import DiffusionPolicy, ModelConfig
+
+FORMAT = "viewscale-policy"
+VERSION = 1
+MODEL_FILE = "model.safetensors"
+POLICY_FILE = "policy.json"
+STATE_FILE = "train_state.safetensors"
+STATE_JSON = "train_state.json"
+LATEST = "latest"
+
+
+class CheckpointError(ValueError):
+    """A checkpoint is missing, incomplete or does not fit the requested model."""
+
+
+@dataclass
+class LoadedPolicy:
+    policy: DiffusionPolicy  # in eval mode, on the requested device
+    info: dict[str, Any]  # policy.json: model, normalizer, action_space, views, calibration, ...
+    path: Path
+
+    @property
+    def normalizer(self):
+        from services.policy.model.normalizer import Normalizer
+
+        return Normalizer.from_dict(self.info["normalizer"])
+
+    @property
+    def action_space(self) -> str:
+        return self.info["action_space"]
+
+
+def _contiguous(state: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    return {k: v.detach().contiguous().cpu() for k, v in state.items()}
+
+
+def _write_json(path: Path, data: dict[str, Any]) -> None:
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(json.dumps(data, indent=2) + "\n")
+    os.replace(tmp, path)
+
+
+def checkpoint_dir(run_dir: str | Path, step: int) -> Path:
+    return Path(run_dir) / "checkpoints" / f"step_{step:07d}"
+
+
+def latest_checkpoint(run_dir: str | Path) -> Path | None:
+    """The newest complete checkpoint of a run (None if it has none)."""
+    marker = Path(run_dir) / "checkpoints" / LATEST
+    if not marker.is_file():
+        return None
+    path = marker.parent / marker.read_text().strip()
+    if not (path / MODEL_FILE).is_file() or not (path / POLICY_FILE).is_file():
+        raise CheckpointError(f"{marker} names {path.name}, which is incomplete")
+    return path
+
+
+def resolve_checkpoint(path: str | Path) -> Path:
+    """A checkpoint folder, or a run directory (its latest checkpoint)."""
+    path = Path(path)
+    if (path / MODEL_FILE).is_file():
+        return path
+    latest = latest_checkpoint(path)
+    if latest is None:
+        raise CheckpointError(f"{path} is neither a checkpoint folder nor a run directory with checkpoints")
+    return latest
+
+
+def optimizer_to_tensors(optim: torch.optim.Optimizer) -> tuple[dict[str, torch.Tensor], list[dict[str, Any]]]:
+    """AdamW state as flat tensors (``optim.<param index>.<name>``) plus JSON-able param groups."""
+    sd = optim.state_dict()
+    tensors = {}
+    for idx, state in sd["state"].items():
+        for name, value in state.items():
+            t = value if torch.is_tensor(value) else torch.tensor(value)
+            tensors[f"optim.{idx}.{name}"] = t
+    groups = [{k: (list(v) if isinstance(v, tuple) else v) for k, v in g.items()} for g in sd["param_groups"]]
+    return tensors, groups
+
+
+def optimizer_from_tensors(
+    optim: torch.optim.Optimizer, tensors: dict[str, torch.Tensor], groups: list[dict[str, Any]]
+) -> None:
+    state: dict[int, dict[str, torch.Tensor]] = {}
+    for key, value in tensors.items():
+        if not key.startswith("optim."):
+            continue
+        _, idx, name = key.split(".", 2)
+        state.setdefault(int(idx), {})[name] = value
+    groups = [{k: (tuple(v) if k == "betas" else v) for k, v in g.items()} for g in groups]
+    optim.load_state_dict({"state": state, "param_groups": groups})
+
+
+def save_checkpoint(
+    run_dir: str | Path,
+    step: int,
+    serve_state: dict[str, torch.Tensor],
+    info: dict[str, Any],
+    train_tensors: dict[str, torch.Tensor],
+    train_json: dict[str, Any],
+    keep: int = 2,
+) -> Path:
+    """Write one checkpoint folder, then point ``latest`` at it, then drop the oldest beyond ``keep``."""
+    path = checkpoint_dir(run_dir, step)
+    tmp = path.with_name(path.name + ".partial")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    save_file(_contiguous(serve_state), str(tmp / MODEL_FILE), metadata={"format": FORMAT})
+    _write_json(tmp / POLICY_FILE, {"format": FORMAT, "version": VERSION, "step": step, **info})
+    save_file(_contiguous(train_tensors), str(tmp / STATE_FILE))
+    _write_json(tmp / STATE_JSON, {"step": step, **train_json})
+    shutil.rmtree(path, ignore_errors=True)
+    os.replace(tmp, path)
+    marker = path.parent / LATEST
+    marker_tmp = marker.with_name(LATEST + ".tmp")
+    marker_tmp.write_text(path.name + "\n")
+    os.replace(marker_tmp, marker)
+    done = sorted(p for p in path.parent.glob("step_*") if p.is_dir() and not p.name.endswith(".partial"))
+    for old in done[:-keep]:
+        if old != path:
+            shutil.rmtree(old, ignore_errors=True)
+    return path
+
+
+def read_info(path: str | Path) -> dict[str, Any]:
+    path = resolve_checkpoint(path)
+    info = json.loads((path / POLICY_FILE).read_text())
+    if info.get("format") != FORMAT or info.get("version") != VERSION:
+        raise CheckpointError(f"{path} is not a {FORMAT} v{VERSION} checkpoint")
+    return info
+
+
+def read_train_state(path: str | Path) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
+    path = Path(path)
+    if not (path / STATE_FILE).is_file():
+        raise CheckpointError(f"{path} has no training state (was it exported for serving only?)")
+    return load_file(str(path / STATE_FILE)), json.loads((path / STATE_JSON).read_text())
+
+
+def config_diff(a: ModelConfig, b: ModelConfig) -> list[str]:
+    """Dotted field names whose values differ between two model configs."""
+
+    def flat(d: Any, prefix: str = "") -> dict[str, Any]:
+        if isinstance(d, dict):
+            out: dict[str, Any] = {}
+            for k, v in d.items():
+                out.update(flat(v, f"{prefix}{k}."))
+            return out
+        return {prefix[:-1]: d}
+
+    fa, fb = flat(a.model_dump(mode="json")), flat(b.model_dump(mode="json"))
+    ignore = {"encoder.vit_weights"}  # where pretrained weights came from does not change the model
+    return sorted(k for k in set(fa) | set(fb) if fa.get(k) != fb.get(k) and k not in ignore)
+
+
+def load_state_checked(module: torch.nn.Module, state: dict[str, torch.Tensor], what: str) -> None:
+    own = module.state_dict()
+    missing = sorted(set(own) - set(state))
+    extra = sorted(set(state) - set(own))
+    shapes = sorted(k for k in set(own) & set(state) if own[k].shape != state[k].shape)
+    if missing or extra or shapes:
+        raise CheckpointError(
+            f"{what} does not fit this model: {len(missing)} missing, {len(extra)} unexpected, "
+            f"{len(shapes)} of another shape (e.g. {(missing or extra or shapes)[:3]}); "
+            "was it trained with a different model config?"
+        )
+    module.load_state_dict(state, strict=True)
+
+
+def load_policy(
+    path: str | Path, device: str | torch.device = "cpu", expect: ModelConfig | None = None
+) -> LoadedPolicy:
+    """Build the policy from a checkpoint folder (or a run's latest) for inference.
+
+    ``expect``: fail with the differing fields if the checkpoint's model config is not this one.
+    """
+    path = resolve_checkpoint(path)
+    info = read_info(path)
+    cfg = ModelConfig.model_validate(info["model"])
+    if expect is not None:
+        diff = config_diff(expect, cfg)
+        if diff:
+            raise CheckpointError(f"checkpoint {path} has a different model config: {', '.join(diff)}")
+    policy = DiffusionPolicy(cfg, load_pretrained=False)
+    load_state_checked(policy, load_file(str(path / MODEL_FILE)), f"checkpoint {path}")
+    return LoadedPolicy(policy.to(device).eval(), info, path)

@@ -1,0 +1,134 @@
+"""Training configuration: one frozen model, loaded as preset < YAML < env < ``--set``.
+
+The preset (``tiny``, ``paper``, ...; see ``services.policy.model.presets``) stands in for the
+defaults, so a YAML file or a command-line override always wins over it. The dataset fills in
+what it decides (frame size, state size, To, Tp) when training starts; a value the user set that
+disagrees with the dataset is an error rather than a silent change.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any, Iterable, Literal, Mapping
+
+from pydantic import Field, ValidationError, model_validator
+
+from services.core.bus import BusConfig
+from services.core.config import ConfigError, Frozen, env_overrides, parse_overrides, read_yaml
+from services.policy.model.policy import ModelConfig
+from services.policy.model.presets import PRESETS, preset
+
+
+class OptimConfig(Frozen):
+    lr: float = 1e-4  # AdamW peak learning rate
+    betas: tuple[float, float] = (0.95, 0.999)  # AdamW betas (diffusion_policy's)
+    eps: float = 1e-8  # AdamW epsilon
+    weight_decay: float = 1e-6  # AdamW weight decay
+    warmup_steps: int = 500  # linear warm-up from 0 to lr
+    schedule: Literal["cosine", "constant"] = "cosine"  # after warm-up: cosine decay to 0 at `steps`, or flat
+    grad_clip: float = 0.0  # max global gradient norm; 0 = no clipping
+
+
+class EmaConfig(Frozen):
+    enabled: bool = True  # keep an exponential moving average of the weights (what checkpoints serve)
+    power: float = 0.75  # decay = 1 - (1 + step / inv_gamma) ** -power, as diffusion_policy's EMAModel
+    inv_gamma: float = 1.0  # see power
+    min_decay: float = 0.0  # lower clamp of the decay
+    max_decay: float = 0.9999  # upper clamp of the decay
+
+
+class TrainConfig(Frozen):
+    data: str = "data/ds"  # dataset directory written by `viewscale dataset build`
+    out: str = "runs/default"  # run directory: checkpoints, log.jsonl, loss.png
+    preset: str = "tiny"  # hyper-parameter preset applied under YAML/env/CLI values
+    steps: int = Field(2000, ge=1)  # optimisation steps in total (a resumed run continues to this count)
+    batch_size: int = Field(32, ge=1)  # samples per step per process
+    seed: int = 0  # seeds weights, data order, crops and noise
+    device: str = "auto"  # auto (cuda if present, else cpu), cpu, cuda, cuda:N; under torchrun: cuda:LOCAL_RANK
+    amp: Literal["auto", "bf16", "off"] = "auto"  # bf16 autocast: auto = on for CUDA devices that support it
+    channels_last: Literal["auto", "on", "off"] = "auto"  # NHWC images for the encoder: auto = on for CUDA
+    num_workers: int = Field(2, ge=0)  # data loader worker processes
+    val_fraction: float = Field(0.1, ge=0.0, lt=1.0)  # share of source episodes held out for validation
+    val_every: int = Field(200, ge=0)  # steps between validation passes; 0 = only at the end
+    val_batches: int = Field(8, ge=1)  # batches per validation pass
+    log_every: int = Field(10, ge=1)  # steps between log.jsonl lines and progress events
+    checkpoint_every: int = Field(500, ge=0)  # steps between checkpoints; 0 = only at the end
+    keep_checkpoints: int = Field(2, ge=1)  # newest checkpoints kept on disk
+    resume: bool = True  # continue from the run directory's latest checkpoint when there is one
+    progress: bool = True  # progress bar on stderr
+    action_space: Literal["base", "eef", "camera"] | None = None  # expected action space; None = the dataset's
+    views: list[str] | None = None  # train on these views of the dataset only; None = all
+    model: ModelConfig = Field(default_factory=ModelConfig)  # policy architecture
+    optim: OptimConfig = Field(default_factory=OptimConfig)  # optimiser and LR schedule
+    ema: EmaConfig = Field(default_factory=EmaConfig)  # weight averaging
+
+    @model_validator(mode="after")
+    def _check(self) -> "TrainConfig":
+        if self.preset not in PRESETS:
+            raise ValueError(f"unknown preset {self.preset!r}; choose one of {', '.join(PRESETS)}")
+        return self
+
+
+class TrainerServiceConfig(Frozen):
+    bus: BusConfig = Field(default_factory=BusConfig)  # zenoh session
+    jobs_dir: str | None = None  # watch this directory for *.yaml / *.json job files; None = queries only
+    poll_s: float = Field(1.0, gt=0)  # how often the jobs directory is scanned
+    progress_every_s: float = Field(1.0, ge=0)  # minimum seconds between progress messages
+    defaults: list[str] = Field(default_factory=list)  # `key=value` overrides applied under every job's own
+    log_level: str = "INFO"  # logging level of the process
+
+
+def deep_merge(base: dict[str, Any], top: Mapping[str, Any]) -> dict[str, Any]:
+    out = dict(base)
+    for key, value in top.items():
+        if isinstance(value, Mapping) and isinstance(out.get(key), Mapping):
+            out[key] = deep_merge(dict(out[key]), value)
+        else:
+            out[key] = value
+    return out
+
+
+def train_config_from_dict(data: Mapping[str, Any], source: str = "") -> TrainConfig:
+    """Validate ``data`` (YAML/env/CLI values merged) on top of its preset."""
+    name = data.get("preset", TrainConfig.model_fields["preset"].default)
+    if name not in PRESETS:
+        raise ConfigError(f"unknown preset {name!r}; choose one of {', '.join(PRESETS)}")
+    merged = deep_merge(preset(name), data)
+    try:
+        return TrainConfig.model_validate(merged)
+    except ValidationError as exc:
+        raise ConfigError(f"invalid training config{source}:\n{exc}") from exc
+
+
+def load_train_config(
+    yaml_path: str | Path | None = None,
+    overrides: Iterable[str] = (),
+    environ: Mapping[str, str] | None = None,
+    section: str | None = None,
+) -> TrainConfig:
+    """preset < YAML (optionally one ``section`` of it) < ``VIEWSCALE_*`` env < ``key=value`` overrides."""
+    environ = os.environ if environ is None else environ
+    data: dict[str, Any] = {}
+    if yaml_path:
+        raw = read_yaml(yaml_path)
+        if section is not None:
+            raw = raw.get(section, {}) or {}
+            if not isinstance(raw, dict):
+                raise ConfigError(f"section {section!r} of {yaml_path} must be a mapping")
+        data = deep_merge(data, raw)
+    env = {k: v for k, v in env_overrides(environ).items() if k in TrainConfig.model_fields}
+    data = deep_merge(data, env)
+    data = deep_merge(data, parse_overrides(overrides))
+    return train_config_from_dict(data, f" (from {yaml_path})" if yaml_path else "")
+
+
+def explicitly_set(cfg: Frozen, path: str) -> bool:
+    """Whether the dotted field ``path`` was given (by a preset, YAML, env or CLI) rather than defaulted."""
+    node: Any = cfg
+    parts = path.split(".")
+    for part in parts[:-1]:
+        if part not in node.model_fields_set:
+            return False
+        node = getattr(node, part)
+    return parts[-1] in node.model_fields_set

@@ -1,0 +1,569 @@
+"""Train a single-view diffusion policy on pseudo-demonstrations.
+
+One loop, in the diffusion_policy way: sample a batch of pseudo-demo windows (every view of every
+episode is its own demo), take the epsilon-prediction loss, step AdamW under a warm-up + cosine
+schedule, update the EMA weights, and every so often validate (EMA weights, held-out episodes),
+plot the loss and write a checkpoint.
+
+Runs on the CPU, one GPU (``device``) or several processes under ``torchrun`` (one GPU each,
+DistributedDataParallel; rank 0 validates and writes). Everything that decides the next batch
+(data order, crops, noise, diffusion steps) comes from seeded generators whose state is in the
+checkpoint, so a resumed run takes the same batches and the same noise as one that never stopped.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Iterator
+
+import torch
+import torch.distributed as dist
+from torch.utils.data import DataLoader, Dataset, Sampler
+
+from services.core.config import ConfigError
+from services.policy.model.diffusion import compute_loss, make_train_scheduler
+from services.policy.model.policy import DiffusionPolicy, ModelConfig
+from services.trainer import checkpoint as ckpt
+from services.trainer.config import TrainConfig, explicitly_set
+
+log = logging.getLogger("trainer")
+
+
+class TrainingError(RuntimeError):
+    """Training cannot go on (bad data for this config, diverged loss); the message says why."""
+
+
+@dataclass
+class TrainData:
+    """What the loop needs from a dataset: windows to train and validate on, and its description."""
+
+    train: Dataset  # items: obs (To, 3, H, W) [-1, 1], state (To, D), action (Tp, 7), view int
+    val: Dataset | None  # held-out episodes, or None
+    meta: dict[str, Any]  # the dataset's meta.json
+    normalizer: dict[str, Any]  # the dataset's normalizer.json (Normalizer.to_dict)
+    source: str = ""  # where it came from (dataset directory)
+
+
+@dataclass
+class TrainResult:
+    step: int  # steps done in total
+    checkpoint: Path | None  # newest checkpoint
+    loss: float | None  # mean training loss over the last log interval
+    val_loss: float | None  # last validation loss
+    steps_per_s: float = 0.0  # this process, this session
+    samples_per_s: float = 0.0  # all processes
+    data_wait: float = 0.0  # share of wall time spent waiting for the data loader
+    stopped: bool = False  # a stop was requested before ``steps``
+    history: list[dict[str, Any]] = field(default_factory=list)
+
+
+# -- data -------------------------------------------------------------------------------------
+
+
+class StepBatchSampler(Sampler[list[int]]):
+    """Endless batches from a seeded stream of epoch permutations, addressable by step.
+
+    The stream is perm(epoch 0) ++ perm(epoch 1) ++ ...; step s takes positions
+    [s * B * W, (s + 1) * B * W) of it and rank r the r-th B of those. So the batch of a step
+    depends only on (seed, step), which is what makes resume exact, and ranks never overlap.
+    """
+
+    def __init__(self, n: int, batch_size: int, seed: int, start_step: int = 0, rank: int = 0, world: int = 1):
+        if n <= 0:
+            raise TrainingError("the training set is empty")
+        self.n, self.batch_size, self.seed = n, batch_size, seed
+        self.start_step, self.rank, self.world = start_step, rank, world
+
+    def _perm(self, epoch: int) -> list[int]:
+        g = torch.Generator().manual_seed(self.seed * 1_000_003 + epoch)
+        return torch.randperm(self.n, generator=g).tolist()
+
+    def batch_at(self, step: int) -> list[int]:
+        pos = (step * self.world + self.rank) * self.batch_size
+        out: list[int] = []
+        epoch, offset = divmod(pos, self.n)
+        perm = self._perm(epoch)
+        while len(out) < self.batch_size:
+            take = perm[offset : offset + self.batch_size - len(out)]
+            out += take
+            offset += len(take)
+            if offset >= self.n:
+                epoch, offset = epoch + 1, 0
+                perm = self._perm(epoch)
+        return out
+
+    def __iter__(self) -> Iterator[list[int]]:
+        step = self.start_step
+        while True:
+            yield self.batch_at(step)
+            step += 1
+
+
+def load_train_data(cfg: TrainConfig) -> TrainData:
+    """Open the dataset directory ``cfg.data`` (built by ``viewscale dataset build``): training and
+    held-out episodes of the chosen views, with To/Tp/Ta from the model config where the user set
+    them (windows are cut when loading) and from the dataset otherwise."""
+    from services.trainer.cache import DatasetError
+    from services.trainer.dataset import PseudoDemoDataset
+
+    horizons = {
+        key: getattr(cfg.model, field)
+        for key, field in (("To", "obs_horizon"), ("Tp", "pred_horizon"), ("Ta", "n_action_steps"))
+        if explicitly_set(cfg, f"model.{field}")
+    }
+    kwargs = dict(views=cfg.views, val_fraction=cfg.val_fraction, **horizons)
+    try:
+        train_ds = PseudoDemoDataset(cfg.data, split="train", **kwargs)
+        val_ds = PseudoDemoDataset(cfg.data, split="val", **kwargs) if cfg.val_fraction > 0 else None
+    except DatasetError as exc:
+        raise TrainingError(str(exc)) from exc
+    except ValueError as exc:  # windows that do not fit the episodes (e.g. Tp too long)
+        raise TrainingError(f"dataset {cfg.data}: {exc}") from exc
+    if val_ds is not None and len(val_ds) == 0:
+        val_ds = None
+    meta = dict(train_ds.meta)
+    meta.update(To=train_ds.To, Tp=train_ds.Tp, Ta=train_ds.Ta)
+    meta["val_episodes"] = list(val_ds.episode_ids) if val_ds is not None else []
+    meta["train_episodes"] = list(train_ds.episode_ids)
+    return TrainData(train_ds, val_ds, meta, train_ds.normalizer.to_dict(), str(Path(cfg.data).resolve()))
+
+
+def resolve_model_config(cfg: TrainConfig, meta: dict[str, Any]) -> ModelConfig:
+    """The model config with what the dataset decides filled in; conflicts are errors."""
+    size = meta.get("image_size")
+    if isinstance(size, dict):
+        size = (int(size["height"]), int(size["width"]))
+    fixed = {
+        "image_size": tuple(size) if size is not None else None,
+        "state_dim": meta.get("state_dim"),
+        "obs_horizon": meta.get("To"),
+        "pred_horizon": meta.get("Tp"),
+        "action_dim": meta.get("action_dim", 7),
+    }
+    if meta.get("Ta") is not None and not explicitly_set(cfg, "model.n_action_steps"):
+        fixed["n_action_steps"] = meta["Ta"]
+    data = cfg.model.model_dump()
+    for name, value in fixed.items():
+        if value is None:
+            continue
+        if explicitly_set(cfg, f"model.{name}") and tuple(_as_tuple(data[name])) != tuple(_as_tuple(value)):
+            raise ConfigError(
+                f"model.{name}={data[name]} does not match the dataset ({value}); "
+                f"rebuild the dataset or drop the override"
+            )
+        data[name] = value
+    try:
+        return ModelConfig.model_validate(data)
+    except ValueError as exc:
+        raise ConfigError(f"the model config does not fit the dataset {meta.get('image_size')}: {exc}") from exc
+
+
+def _as_tuple(v: Any) -> tuple:
+    return tuple(v) if isinstance(v, (list, tuple)) else (v,)
+
+
+def check_action_space(cfg: TrainConfig, meta: dict[str, Any]) -> str:
+    space = meta.get("action_space")
+    if space not in ("base", "eef", "camera"):
+        raise TrainingError(f"dataset {cfg.data} has no valid action_space in meta.json (got {space!r})")
+    if cfg.action_space is not None and cfg.action_space != space:
+        raise TrainingError(
+            f"dataset {cfg.data} holds {space!r}-space actions but the config asks for "
+            f"{cfg.action_space!r}; rebuild it with `viewscale dataset build --space {cfg.action_space}` "
+            f"or set action_space={space}"
+        )
+    if meta.get("action_dim", 7) != 7:
+        raise TrainingError(f"dataset actions have {meta.get('action_dim')} components; the policy expects 7")
+    return space
+
+
+# -- optimisation helpers ---------------------------------------------------------------------
+
+
+class LossModule(torch.nn.Module):
+    """The training loss as a module's forward, so DistributedDataParallel can wrap it."""
+
+    def __init__(self, policy: DiffusionPolicy, scheduler):
+        super().__init__()
+        self.policy = policy
+        self.scheduler = scheduler
+
+    def forward(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
+        return compute_loss(self.policy, self.scheduler, batch)
+
+
+def lr_at(step: int, cfg: TrainConfig) -> float:
+    """Linear warm-up to ``optim.lr``, then cosine to 0 at ``steps`` (or flat)."""
+    o = cfg.optim
+    if step < o.warmup_steps:
+        return o.lr * step / max(1, o.warmup_steps)
+    if o.schedule == "constant":
+        return o.lr
+    progress = min(1.0, (step - o.warmup_steps) / max(1, cfg.steps - o.warmup_steps))
+    return o.lr * 0.5 * (1.0 + math.cos(math.pi * progress))
+
+
+class EMA:
+    """Exponential moving average of a model's weights, diffusion_policy's schedule:
+    decay(step) = clamp(1 - (1 + step / inv_gamma) ** -power, min, max), 0 at step 0."""
+
+    def __init__(self, model: torch.nn.Module, cfg):
+        import copy
+
+        self.cfg = cfg
+        self.model = copy.deepcopy(model).eval().requires_grad_(False)
+
+    def decay(self, step: int) -> float:
+        if step <= 0:
+            return 0.0
+        value = 1.0 - (1.0 + step / self.cfg.inv_gamma) ** -self.cfg.power
+        return max(self.cfg.min_decay, min(value, self.cfg.max_decay))
+
+    @torch.no_grad()
+    def update(self, model: torch.nn.Module, step: int) -> None:
+        d = self.decay(step)
+        for ema_t, t in zip(self.model.state_dict().values(), model.state_dict().values()):
+            if ema_t.dtype.is_floating_point:
+                ema_t.mul_(d).add_(t.detach(), alpha=1.0 - d)
+            else:
+                ema_t.copy_(t)
+
+
+def pick_device(spec: str, local_rank: int) -> torch.device:
+    if spec == "auto":
+        spec = "cuda" if torch.cuda.is_available() else "cpu"
+    if spec.startswith("cuda"):
+        if not torch.cuda.is_available():
+            raise ConfigError(f"device={spec} but no CUDA device is available (use device=cpu or auto)")
+        if spec == "cuda":
+            spec = f"cuda:{local_rank}"
+    return torch.device(spec)
+
+
+def dist_env() -> tuple[int, int, int]:
+    """(rank, local_rank, world) as torchrun sets them; (0, 0, 1) otherwise."""
+    return int(os.environ.get("RANK", 0)), int(os.environ.get("LOCAL_RANK", 0)), int(os.environ.get("WORLD_SIZE", 1))
+
+
+def _to_device(batch: dict[str, torch.Tensor], device: torch.device) -> dict[str, torch.Tensor]:
+    return {k: v.to(device, non_blocking=True) for k, v in batch.items() if torch.is_tensor(v)}
+
+
+@torch.no_grad()
+def validation_loss(policy: DiffusionPolicy, data: Dataset, cfg: TrainConfig, device: torch.device, amp: bool) -> float:
+    """Mean loss of ``policy`` (eval mode: centre crops) over the first ``val_batches`` batches,
+    with fixed noise so successive passes are comparable; the training RNG is left untouched."""
+    sched = make_train_scheduler(policy.cfg.noise)
+    loader = DataLoader(data, batch_size=cfg.batch_size, shuffle=False, num_workers=0)
+    was_training = policy.training
+    policy.eval()
+    total, count = 0.0, 0
+    devices = [device.index or 0] if device.type == "cuda" else []
+    with torch.random.fork_rng(devices=devices):
+        torch.manual_seed(cfg.seed + 12345)
+        for i, batch in enumerate(loader):
+            if i >= cfg.val_batches:
+                break
+            batch = _to_device(batch, device)
+            with torch.autocast(device.type, dtype=torch.bfloat16, enabled=amp):
+                loss = compute_loss(policy, sched, batch)
+            n = batch["action"].shape[0]
+            total += float(loss) * n
+            count += n
+    policy.train(was_training)
+    return total / max(1, count)
+
+
+def plot_losses(history: list[dict[str, Any]], path: Path) -> None:
+    """Training (per log interval) and validation loss against step, log scale."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    train = [(h["step"], h["loss"]) for h in history if h.get("loss") is not None]
+    val = [(h["step"], h["val_loss"]) for h in history if h.get("val_loss") is not None]
+    fig, ax = plt.subplots(figsize=(6, 4), dpi=100)
+    if train:
+        ax.plot(*zip(*train), label="train", lw=1)
+    if val:
+        ax.plot(*zip(*val), "o-", label="validation (EMA)", ms=3)
+    ax.set_xlabel("step")
+    ax.set_ylabel("epsilon MSE")
+    if train or val:
+        ax.set_yscale("log")
+        ax.legend()
+    ax.grid(True, alpha=0.3)
+    fig.tight_layout()
+    tmp = path.with_name(path.stem + ".tmp.png")
+    fig.savefig(tmp)
+    plt.close(fig)
+    os.replace(tmp, path)
+
+
+def _read_history(path: Path, upto: int) -> list[dict[str, Any]]:
+    if not path.is_file():
+        return []
+    rows = []
+    for line in path.read_text().splitlines():
+        try:
+            row = json.loads(line)
+        except ValueError:
+            continue
+        if row.get("step", 0) <= upto:
+            rows.append(row)
+    return rows
+
+
+# -- the loop -----------------------------------------------------------------------------------
+
+
+def train(
+    cfg: TrainConfig,
+    data: TrainData | None = None,
+    on_progress: Callable[[dict[str, Any]], None] | None = None,
+    stop: threading.Event | None = None,
+) -> TrainResult:
+    """Train (or resume) the run in ``cfg.out``; returns when ``cfg.steps`` are done or ``stop`` is set."""
+    rank, local_rank, world = dist_env()
+    device = pick_device(cfg.device, local_rank)
+    distributed = world > 1
+    if distributed and not dist.is_initialized():
+        dist.init_process_group("nccl" if device.type == "cuda" else "gloo")
+    if device.type == "cuda":
+        torch.cuda.set_device(device)
+    main = rank == 0
+    out = Path(cfg.out)
+
+    data = data or load_train_data(cfg)
+    space = check_action_space(cfg, data.meta)
+    model_cfg = resolve_model_config(cfg, data.meta)
+    views = list(cfg.views or data.meta.get("views", []))
+    cameras = data.meta.get("cameras") or {}
+
+    # Resume or start fresh (a run directory is never silently overwritten).
+    latest = ckpt.latest_checkpoint(out)
+    if latest is not None and not cfg.resume:
+        raise ConfigError(f"{out} already has checkpoints ({latest.name}); resume=true continues it, or pick a new out")
+    if latest is not None:
+        info = ckpt.read_info(latest)
+        diff = ckpt.config_diff(ModelConfig.model_validate(info["model"]), model_cfg)
+        if diff:
+            raise ckpt.CheckpointError(
+                f"{latest} was trained with a different model config ({', '.join(diff)}); "
+                "use the same preset and overrides to resume, or a new out directory"
+            )
+        if info.get("normalizer") != data.normalizer or info.get("action_space") != space:
+            raise ckpt.CheckpointError(
+                f"{latest} was trained on a different dataset (normalizer or action space differ); "
+                "resume it with the same --data, or use a new out directory"
+            )
+
+    torch.manual_seed(cfg.seed)  # same initial weights on every rank
+    policy = DiffusionPolicy(model_cfg).to(device)
+    use_amp = cfg.amp == "bf16" or (cfg.amp == "auto" and device.type == "cuda" and torch.cuda.is_bf16_supported())
+    if cfg.amp == "bf16" and device.type != "cuda":
+        log.warning("amp=bf16 on %s: autocast on the CPU is slower than float32 here; using it as asked", device)
+    if cfg.channels_last == "on" or (cfg.channels_last == "auto" and device.type == "cuda"):
+        policy.use_channels_last()
+    ema = EMA(policy, cfg.ema) if cfg.ema.enabled and main else None
+    params = [p for p in policy.parameters() if p.requires_grad]
+    optim = torch.optim.AdamW(
+        params, lr=cfg.optim.lr, betas=tuple(cfg.optim.betas), eps=cfg.optim.eps, weight_decay=cfg.optim.weight_decay
+    )
+    torch.manual_seed(cfg.seed + 1 + rank)  # crops, noise and diffusion steps differ between ranks
+    start = 0
+    history: list[dict[str, Any]] = []
+    if latest is not None:
+        tensors, state = ckpt.read_train_state(latest)
+        raw = {k[len("model."):]: v for k, v in tensors.items() if k.startswith("model.")}
+        ckpt.load_state_checked(policy, raw, f"{latest} (training weights)")
+        if ema is not None:
+            from safetensors.torch import load_file
+
+            ckpt.load_state_checked(ema.model, load_file(str(latest / ckpt.MODEL_FILE)), f"{latest} (EMA weights)")
+        ckpt.optimizer_from_tensors(optim, tensors, state["optim_groups"])
+        rng_key = f"rng.torch.{rank}"
+        if rng_key in tensors:
+            torch.set_rng_state(tensors[rng_key])
+        if device.type == "cuda" and f"rng.cuda.{rank}" in tensors:
+            torch.cuda.set_rng_state(tensors[f"rng.cuda.{rank}"], device)
+        start = int(state["step"])
+        history = _read_history(out / "log.jsonl", start)
+        if main:
+            log.info("resuming %s from step %d", out, start)
+    sched = make_train_scheduler(model_cfg.noise)
+    net: torch.nn.Module = LossModule(policy, sched)
+    if distributed:
+        net = torch.nn.parallel.DistributedDataParallel(net, device_ids=[device.index] if device.type == "cuda" else None)
+
+    if main:
+        out.mkdir(parents=True, exist_ok=True)
+        run_cfg = cfg.model_dump(mode="json")
+        run_cfg["model"] = model_cfg.model_dump(mode="json")
+        (out / "config.json").write_text(json.dumps(run_cfg, indent=2) + "\n")
+
+    sampler = StepBatchSampler(len(data.train), cfg.batch_size, cfg.seed, start, rank, world)
+    loader = DataLoader(
+        data.train,
+        batch_sampler=sampler,
+        num_workers=cfg.num_workers,
+        pin_memory=device.type == "cuda",
+        persistent_workers=cfg.num_workers > 0,
+        # its own generator: creating the iterator must not draw from the training RNG stream
+        generator=torch.Generator().manual_seed(cfg.seed + rank),
+    )
+
+    info_base = {
+        "model": model_cfg.model_dump(mode="json"),
+        "normalizer": data.normalizer,
+        "action_space": space,
+        "state_frame": data.meta.get("state_frame"),
+        "views": views,
+        "calibration": {v: cameras.get(v) for v in views},
+        "To": model_cfg.obs_horizon,
+        "Tp": model_cfg.pred_horizon,
+        "n_action_steps": model_cfg.n_action_steps,
+        "dataset": {
+            "path": data.source,
+            "episodes": data.meta.get("train_episodes") or [e.get("id") for e in data.meta.get("episodes", [])],
+            "val_episodes": data.meta.get("val_episodes", []),
+        },
+        "train": cfg.model_dump(mode="json"),
+    }
+
+    def save(step: int, loss: float | None, val: float | None) -> Path:
+        serve = (ema.model if ema is not None else policy).state_dict()
+        if not all(torch.isfinite(t).all() for t in serve.values() if t.dtype.is_floating_point):
+            raise TrainingError(f"weights are not finite at step {step}; the last good checkpoint is kept")
+        optim_t, groups = ckpt.optimizer_to_tensors(optim)
+        train_t = {f"model.{k}": v for k, v in policy.state_dict().items()}
+        train_t.update(optim_t)
+        train_t[f"rng.torch.{rank}"] = torch.get_rng_state()
+        if device.type == "cuda":
+            train_t[f"rng.cuda.{rank}"] = torch.cuda.get_rng_state(device)
+        return ckpt.save_checkpoint(
+            out, step, serve, {**info_base, "loss": loss, "val_loss": val},
+            train_t, {"optim_groups": groups, "world": world}, keep=cfg.keep_checkpoints,
+        )
+
+    bar = None
+    if main and cfg.progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=cfg.steps, initial=start, desc="train", unit="step", dynamic_ncols=True, smoothing=0.1)
+
+    result = TrainResult(step=start, checkpoint=latest, loss=None, val_loss=None, history=history)
+    step = start
+    t_start = time.perf_counter()
+    wait = 0.0
+    interval_losses: list[float] = []
+    t_interval, n_interval = time.perf_counter(), 0
+    log_file = (out / "log.jsonl").open("a") if main else None
+    if main and latest is not None:
+        # drop log lines past the checkpoint we resumed from (a crash after it logged on)
+        (out / "log.jsonl").write_text("".join(json.dumps(h) + "\n" for h in history))
+    policy.train()
+    try:
+        it = iter(loader)
+        while step < cfg.steps:
+            if stop is not None and stop.is_set():
+                result.stopped = True
+                break
+            t0 = time.perf_counter()
+            batch = _to_device(next(it), device)
+            wait += time.perf_counter() - t0
+
+            lr = lr_at(step, cfg)
+            for g in optim.param_groups:
+                g["lr"] = lr
+            with torch.autocast(device.type, dtype=torch.bfloat16, enabled=use_amp):
+                loss = net(batch)
+            check = loss.detach().clone()
+            if distributed:
+                dist.all_reduce(check)
+                check /= world
+            if not torch.isfinite(check):
+                raise TrainingError(
+                    f"loss is {float(check)} at step {step}: training stopped; the last good checkpoint "
+                    f"({ckpt.latest_checkpoint(out) or 'none yet'}) is kept. Lower optim.lr or check the dataset"
+                )
+            optim.zero_grad(set_to_none=True)
+            loss.backward()
+            if cfg.optim.grad_clip > 0:
+                torch.nn.utils.clip_grad_norm_(params, cfg.optim.grad_clip)
+            optim.step()
+            step += 1
+            if ema is not None:
+                ema.update(policy, step)
+            interval_losses.append(float(check))
+            n_interval += 1
+            if bar is not None:
+                bar.update(1)
+
+            last = step == cfg.steps
+            do_val = main and data.val is not None and ((cfg.val_every and step % cfg.val_every == 0) or last)
+            do_log = step % cfg.log_every == 0 or last or do_val
+            if do_log and main:
+                now = time.perf_counter()
+                it_s = n_interval / max(1e-9, now - t_interval)
+                row: dict[str, Any] = {
+                    "step": step,
+                    "loss": sum(interval_losses) / len(interval_losses),
+                    "lr": lr,
+                    "it_s": round(it_s, 3),
+                    "samples_s": round(it_s * cfg.batch_size * world, 2),
+                    "data_wait": round(wait / max(1e-9, now - t_start), 3),
+                }
+                if do_val:
+                    row["val_loss"] = validation_loss(ema.model if ema is not None else policy, data.val, cfg, device, use_amp)
+                    result.val_loss = row["val_loss"]
+                result.loss = row["loss"]
+                history.append(row)
+                log_file.write(json.dumps(row) + "\n")
+                log_file.flush()
+                if bar is not None:
+                    post = {"loss": f"{row['loss']:.4f}", "lr": f"{lr:.2e}"}
+                    if result.val_loss is not None:
+                        post["val"] = f"{result.val_loss:.4f}"
+                    bar.set_postfix(post, refresh=False)
+                if on_progress is not None:
+                    eta = (cfg.steps - step) / it_s if it_s > 0 else None
+                    on_progress({**row, "steps": cfg.steps, "eta_s": eta, "val_loss": result.val_loss,
+                                 "state": "running"})
+                if do_val or last:
+                    plot_losses(history, out / "loss.png")
+                interval_losses, t_interval, n_interval = [], now, 0
+            if main and ((cfg.checkpoint_every and step % cfg.checkpoint_every == 0) or last):
+                result.checkpoint = save(step, result.loss, result.val_loss)
+            if distributed and (do_val or (cfg.checkpoint_every and step % cfg.checkpoint_every == 0)):
+                dist.barrier()
+        if result.stopped and main and step > start:
+            result.checkpoint = save(step, result.loss, result.val_loss)
+            plot_losses(history, out / "loss.png")
+    finally:
+        if bar is not None:
+            bar.close()
+        if log_file is not None:
+            log_file.close()
+        del loader
+
+    elapsed = time.perf_counter() - t_start
+    result.step = step
+    result.history = history
+    if step > start:
+        result.steps_per_s = (step - start) / elapsed
+        result.samples_per_s = result.steps_per_s * cfg.batch_size * world
+        result.data_wait = wait / elapsed
+    if distributed:
+        dist.barrier()
+    return result
+
+

@@ -1,0 +1,106 @@
+"""``viewscale train``: train a policy on a dataset from ``viewscale dataset build``.
+
+    viewscale train --data data/ds --preset tiny --steps 2000 --out runs/lift-five15-camera
+    viewscale train --config train.yaml --set model.down_dims=[256,512,1024] --set optim.lr=3e-4
+    torchrun --nproc_per_node=4 -m services.cli train --data data/ds --preset paper --out runs/paper
+
+Settings: preset < --config YAML < VIEWSCALE_<FIELD> env < the flags below < --set key=value.
+Running it again with the same --out resumes from the run's latest checkpoint.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from services.policy.model.presets import PRESETS
+
+
+def _train(args: argparse.Namespace) -> int:
+    from services.core.config import ConfigError
+    from services.trainer.checkpoint import CheckpointError
+    from services.trainer.config import load_train_config
+    from services.trainer.train import TrainingError, dist_env, train
+
+    flags = {
+        "data": args.data,
+        "out": args.out,
+        "preset": args.preset,
+        "steps": args.steps,
+        "batch_size": args.batch_size,
+        "device": args.device,
+        "seed": args.seed,
+        "num_workers": args.workers,
+        "views": "[" + args.views.strip("[]") + "]" if args.views else None,
+    }
+    overrides = [f"{k}={v}" for k, v in flags.items() if v is not None]
+    if args.no_resume:
+        overrides.append("resume=false")
+    if args.no_progress:
+        overrides.append("progress=false")
+    try:
+        cfg = load_train_config(args.config, [*overrides, *args.set])
+        result = train(cfg)
+    except (ConfigError, TrainingError, CheckpointError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("interrupted: resume with the same command", file=sys.stderr)
+        return 130
+    if dist_env()[0] != 0:
+        return 0
+    summary = {
+        "step": result.step,
+        "loss": result.loss,
+        "val_loss": result.val_loss,
+        "checkpoint": str(result.checkpoint) if result.checkpoint else None,
+        "loss_png": str(Path(cfg.out) / "loss.png"),
+        "samples_per_s": round(result.samples_per_s, 2),
+        "data_wait": round(result.data_wait, 3),
+    }
+    if args.json:
+        print(json.dumps(summary))
+    else:
+        val = f"{result.val_loss:.4f}" if result.val_loss is not None else "-"
+        loss = f"{result.loss:.4f}" if result.loss is not None else "-"
+        print(f"trained {cfg.out} to step {result.step}: loss {loss}, validation {val}")
+        print(f"checkpoint {summary['checkpoint']}\nloss curve {summary['loss_png']}")
+    return 0
+
+
+def add_train_command(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser(
+        "train",
+        help="train a single-view diffusion policy on a pseudo-demo dataset",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("--data", help="dataset directory (default data/ds)")
+    p.add_argument("--out", help="run directory; an existing run is resumed (default runs/default)")
+    p.add_argument("--preset", choices=sorted(PRESETS), help="hyper-parameter preset (default tiny)")
+    p.add_argument("--steps", type=int, help="total optimisation steps")
+    p.add_argument("--batch-size", type=int, help="samples per step (per process)")
+    p.add_argument("--device", help="auto, cpu, cuda or cuda:N (default auto)")
+    p.add_argument("--seed", type=int, help="random seed (default 0)")
+    p.add_argument("--workers", type=int, help="data loader worker processes (default 2)")
+    p.add_argument("--views", help="train on these views only, e.g. F,FL,FR (default all of the dataset's)")
+    p.add_argument("--config", help="YAML file with training settings (any TrainConfig field)")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="override any setting, dotted for nested ones: model.down_dims=[64,128] (repeatable)")
+    p.add_argument("--no-resume", action="store_true", help="refuse to continue an existing run in --out")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--json", action="store_true", help="print the result as one JSON line")
+    p.set_defaults(func=_train)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="viewscale")
+    add_train_command(parser.add_subparsers(dest="command", required=True))
+    args = parser.parse_args(argv)
+    return int(args.func(args))
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
