@@ -42,7 +42,6 @@ from services.trainer.episodes import (
     CameraCalib,
     EpisodeError,
     align,
-    default_max_frame_age_ns,
     load_raw_episode,
     segments,
 )
@@ -68,7 +67,7 @@ class BuildParams:
     space: str = "camera"  # action space: base, eef or camera
     state_frame: str = "auto"  # robot state frame: auto (follows the space), base or camera
     image_size: tuple[int, int] = (84, 84)  # cached frame (width, height)
-    max_frame_age_ms: float | None = None  # a frame older than this at its tick is stale; default half a period
+    max_frame_age_ms: float | None = None  # a frame older than this at its tick is stale; default per camera
     drop_stale_actions: bool = False  # also drop ticks whose applied action was a hold for want of a command
     To: int = 2  # observation horizon
     Tp: int = 16  # prediction horizon
@@ -211,8 +210,7 @@ def _jpeg_size(data: bytes) -> tuple[int, int] | None:
 def build_episode(src: Path, sha: str, dest: Path, params: BuildParams) -> dict[str, Any]:
     """Decode one MCAP into ``dest`` (which must not exist); returns its episode.json content."""
     ep = load_raw_episode(src, list(params.views))
-    age_ns = (int(params.max_frame_age_ms * 1e6) if params.max_frame_age_ms is not None
-              else default_max_frame_age_ns(ep.control_hz))
+    age_ns = int(params.max_frame_age_ms * 1e6) if params.max_frame_age_ms is not None else None
     al = align(ep, list(params.views), age_ns, params.drop_stale_actions)
     size = tuple(params.image_size)
     dest.mkdir(parents=True)
@@ -266,7 +264,7 @@ def build_episode(src: Path, sha: str, dest: Path, params: BuildParams) -> dict[
                                          "start_ns", "end_ns") if k in md},
         "ticks": int(len(ep.state_tick)),
         "aligned_ticks": int(len(al.tick)),
-        "max_frame_age_ns": age_ns,
+        "max_frame_age_ns": al.frame_tolerance_ns,
         "drops": al.drops,
         "frames_decoded": frames_done,
         "views": views_info,
@@ -511,7 +509,13 @@ def build_dataset(
                 built += 1
                 frames += info["frames_decoded"]
                 rows = ", ".join(f"{v} {info['views'][v]['rows']}" for v in params.views)
-                progress(f"[{i}/{len(sources)}] {src.name}: {info['ticks']} ticks -> rows {rows} ({secs:.1f} s)")
+                dropped = "; ".join(
+                    f"{v} " + " ".join(f"{n} {k}" for k, n in c.items() if n)
+                    for v, c in info["drops"]["views"].items() if any(c.values()))
+                if info["drops"]["no_action"]:
+                    dropped = f"{info['drops']['no_action']} without action" + (f"; {dropped}" if dropped else "")
+                progress(f"[{i}/{len(sources)}] {src.name}: {info['ticks']} ticks -> rows {rows} ({secs:.1f} s)"
+                         + (f"; dropped {dropped}" if dropped else ""))
             episodes.append({"id": info["episode_id"], "dir": src.stem, "info": info})
     finally:
         results.close()  # stops the workers and removes unfinished temporary directories

@@ -150,7 +150,8 @@ def add_dataset_commands(subparsers: argparse._SubParsersAction) -> None:
     b.add_argument("--image-size", type=_size, default=(84, 84), metavar="WxH",
                    help="cached frame size, 84 or WxH (default 84x84)")
     b.add_argument("--max-frame-age-ms", type=float, default=None,
-                   help="a frame older than this at its tick is stale (default half a control period)")
+                   help="a frame older than this at its tick is stale (default per camera: its median age at a "
+                        "tick plus half its frame interval; half a period in sim)")
     b.add_argument("--drop-stale-actions", action="store_true",
                    help="also drop ticks where the robot held still for want of a command (kept by default)")
     b.add_argument("--To", type=int, default=2, help="observation horizon (default 2)")

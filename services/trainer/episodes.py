@@ -2,9 +2,14 @@
 
 A sample is one control tick k: the RobotState of tick k, the AppliedAction of tick k (what
 the robot executed between state k and k + 1: the demonstration action) and, per camera, the
-newest frame captured at or before the state's capture time, if it is at most
-``max_frame_age_ns`` older. All times are capture times from the MCAP (``RobotState.header``,
-``CompressedImage.timestamp``), never indices.
+newest frame captured at or before the state's capture time, if it is not stale. All times are
+capture times from the MCAP (``publish_time``), never indices.
+
+Stale means older than a tolerance: ``max_frame_age_ns`` if given, otherwise per camera the
+camera's usual age at a tick (median) plus half its frame interval (median). In sim frames
+share the tick's time, so this is half a period and one lost frame makes its tick stale; a real
+camera running on its own clock is normally up to one frame interval old at a tick, and only a
+lost frame pushes it past the tolerance.
 
 Nothing is filled in: a tick without an applied action is dropped for every view, a tick
 whose frame is missing or too old is dropped for that view, and every drop is counted by
@@ -109,15 +114,26 @@ class Aligned:
     action: np.ndarray  # (T, 7) base frame
     frame_index: dict[str, np.ndarray]  # view -> (T,) index into that camera's frames, -1 = dropped
     drops: dict[str, Any]  # reason -> count; "views": view -> reason -> count
+    frame_tolerance_ns: dict[str, int] = field(default_factory=dict)  # view -> max frame age used
 
     def valid(self, view: str) -> np.ndarray:
         return self.frame_index[view] >= 0
 
 
 def default_max_frame_age_ns(control_hz: float | None) -> int:
-    """Half a control period: an older frame belongs to an earlier tick (or a lost frame)."""
+    """Half a control period: the tolerance of a camera too sparse to measure."""
     hz = control_hz if control_hz and control_hz > 0 else 10.0
     return int(0.5e9 / hz)
+
+
+def frame_tolerance_ns(frame_ns: np.ndarray, ages: np.ndarray, control_hz: float | None) -> int:
+    """Median age of a camera's frame at a tick plus half its median frame interval."""
+    if len(frame_ns) < 3 or len(ages) == 0:
+        return default_max_frame_age_ns(control_hz)
+    interval = float(np.median(np.diff(frame_ns)))
+    if interval <= 0:
+        return default_max_frame_age_ns(control_hz)
+    return int(np.median(ages) + interval / 2)
 
 
 def align(
@@ -129,8 +145,6 @@ def align(
         if v not in ep.frame_ns:
             have = ", ".join(ep.cameras) or "none"
             raise EpisodeError(f"{name}: no camera {v!r} in this episode (cameras: {have})")
-    if max_frame_age_ns is None:
-        max_frame_age_ns = default_max_frame_age_ns(ep.control_hz)
     drops: dict[str, Any] = {"duplicate_state": 0, "no_action": 0, "stale_action": 0, "action_without_state": 0}
 
     # States by tick; a repeated tick keeps its first message.
@@ -161,13 +175,17 @@ def align(
 
     stamp = ep.state_ns[keep].astype(np.int64)
     frame_index: dict[str, np.ndarray] = {}
+    tolerance: dict[str, int] = {}
     drops["views"] = {}
     for v in views:
         f_ns = ep.frame_ns[v]
         i = np.searchsorted(f_ns, stamp, side="right") - 1  # newest frame at or before the tick
         missing = i < 0
         age = stamp - f_ns[np.maximum(i, 0)] if len(f_ns) else np.zeros_like(stamp)
-        too_old = ~missing & (age > max_frame_age_ns)
+        tol = max_frame_age_ns if max_frame_age_ns is not None else frame_tolerance_ns(f_ns, age[~missing],
+                                                                                      ep.control_hz)
+        tolerance[v] = int(tol)
+        too_old = ~missing & (age > tol)
         i = np.where(missing | too_old, -1, i)
         frame_index[v] = i.astype(np.int64)
         drops["views"][v] = {"missing_frame": int(missing.sum()), "stale_frame": int(too_old.sum())}
@@ -182,6 +200,7 @@ def align(
         action=ep.action[a_idx].astype(np.float64),
         frame_index=frame_index,
         drops=drops,
+        frame_tolerance_ns=tolerance,
     )
 
 

@@ -91,9 +91,33 @@ def test_unknown_view_names_the_file_and_the_cameras():
         align(raw(), ["FX"])
 
 
-def test_default_tolerance_is_half_a_period():
+def test_default_tolerance_in_sim_is_half_a_period():
+    al = align(raw(), ["F"])
+    assert al.frame_tolerance_ns["F"] == PERIOD // 2
     assert default_max_frame_age_ns(20.0) == PERIOD // 2
     assert default_max_frame_age_ns(None) == 50_000_000
+
+
+def test_a_free_running_camera_is_fresh_up_to_a_frame_old_and_stale_after_a_lost_frame():
+    """A real camera at 20 fps on its own clock: its newest frame is 0..50 ms old at a tick."""
+    rng = np.random.default_rng(0)
+    n = 200
+    f = T0 - 31_000_000 + np.arange(n) * PERIOD + rng.integers(-2_000_000, 2_000_000, n)
+    al = align(raw(n=n, frames={"F": f}), ["F"])
+    assert al.drops["views"]["F"] == {"missing_frame": 0, "stale_frame": 0}
+    np.testing.assert_array_equal(al.frame_index["F"], np.arange(n))
+    lost = np.delete(f, 120)  # the frame before tick 120 never arrived
+    al = align(raw(n=n, frames={"F": lost}), ["F"])
+    assert al.drops["views"]["F"] == {"missing_frame": 0, "stale_frame": 1}
+    assert al.frame_index["F"][120] == -1 and al.frame_index["F"][121] == 120
+
+
+def test_frames_a_little_after_the_tick_give_the_previous_frame_consistently():
+    f = T0 + np.arange(10) * PERIOD + 3_000_000
+    al = align(raw(frames={"F": f}), ["F"])
+    assert al.frame_index["F"][0] == -1 and al.drops["views"]["F"]["missing_frame"] == 1
+    np.testing.assert_array_equal(al.frame_index["F"][1:], np.arange(9))  # tick k: frame k-1, never k
+    assert al.drops["views"]["F"]["stale_frame"] == 0
 
 
 def test_chunks_match_diffusion_policy_sampler():
