@@ -17,7 +17,8 @@ Layout of a dataset directory::
 
 Builds are incremental: an episode directory is reused when its source hash and the
 parameters that shaped its arrays are unchanged, and the whole build is skipped when nothing
-changed. Each episode is written under a temporary name and renamed into place when complete.
+changed. A source whose path, size and mtime match the last complete build keeps its recorded
+hash instead of being read again (``--force`` rehashes and rebuilds everything). Each episode is written under a temporary name and renamed into place when complete.
 """
 
 from __future__ import annotations
@@ -273,7 +274,6 @@ def build_episode(src: Path, sha: str, dest: Path, params: BuildParams) -> dict[
     return info
 
 
-
 def _build_one(src: Path, sha: str, tmp: Path, params: BuildParams) -> tuple[dict | None, Exception | None, float]:
     t = time.perf_counter()
     try:
@@ -360,7 +360,8 @@ class DatasetStore:
             d = self.path / EPISODES / e["dir"]
             for vi, v in enumerate(self.views):
                 ev = e["views"][v]
-                self.demos.append(StoredDemo(e["id"], d, v, vi, int(ev["rows"]), ev.get("calib")))
+                calib = ev["calib"] if "calib" in ev else self.meta["cameras"].get(v)
+                self.demos.append(StoredDemo(e["id"], d, v, vi, int(ev["rows"]), calib))
 
     @property
     def episode_ids(self) -> list[str]:
@@ -422,6 +423,17 @@ def _summarise(store_dir: Path, params: BuildParams, episodes: list[dict[str, An
     }
 
 
+def _episode_view(info: dict[str, Any], camera: dict[str, Any] | None) -> dict[str, Any]:
+    """An episode's view entry in meta.json; its calibration only where it differs from the view's."""
+    out: dict[str, Any] = {"rows": info["rows"]}
+    c = info["calib"]
+    same = c is not None and camera is not None and all(
+        np.allclose(c[k], camera[k], atol=1e-9) for k in ("K", "R_ext", "position"))
+    if not same:
+        out["calib"] = c
+    return out
+
+
 def build_dataset(
     raw: Path | list[Path],
     out: str | Path,
@@ -445,19 +457,33 @@ def build_dataset(
     if out.is_dir() and any(out.iterdir()) and not ((out / MANIFEST).exists() or (out / EPISODES).is_dir()):
         raise DatasetError(f"output {out} is a non-empty directory that is not a viewscale dataset")
 
-    progress(f"hashing {len(sources)} episode files")
-    hashes = {s: sha256_file(s) for s in sources}
+    manifest_path = out / MANIFEST
+    try:
+        old = json.loads(manifest_path.read_text()) if manifest_path.is_file() else {}
+    except ValueError:
+        old = {}
+    # A file whose path, size and mtime match the last complete build keeps its recorded hash.
+    known = {e.get("path"): e for e in old.get("sources", []) if isinstance(e, dict)} if not force else {}
+    stats = {s: s.stat() for s in sources}
+    hashes: dict[Path, str] = {}
+    to_hash = []
+    for src in sources:
+        k, st = known.get(str(src.resolve())), stats[src]
+        if k and k.get("size") == st.st_size and k.get("mtime_ns") == st.st_mtime_ns and k.get("sha256"):
+            hashes[src] = k["sha256"]
+        else:
+            to_hash.append(src)
+    if to_hash:
+        progress(f"hashing {len(to_hash)} episode files")
+    for src in to_hash:
+        hashes[src] = sha256_file(src)
     wanted_manifest = {
         "version": VERSION,
         "params": params.to_json(),
-        "sources": [{"path": str(s.resolve()), "sha256": hashes[s], "dir": s.stem} for s in sources],
+        "sources": [{"path": str(s.resolve()), "sha256": hashes[s], "size": stats[s].st_size,
+                     "mtime_ns": stats[s].st_mtime_ns, "dir": s.stem} for s in sources],
     }
-    manifest_path = out / MANIFEST
-    if manifest_path.is_file() and not force:
-        try:
-            old = json.loads(manifest_path.read_text())
-        except ValueError:
-            old = {}
+    if old and not force:
         same = {k: old.get(k) for k in wanted_manifest} == wanted_manifest and old.get("complete")
         if same and all((out / f).is_file() for f in (META, NORMALIZER, SUMMARY)):
             summary = json.loads((out / SUMMARY).read_text())
@@ -565,14 +591,13 @@ def build_dataset(
         "Ta": params.Ta,
         "pad_actions": params.pad_actions,
         "image_size": {"width": params.image_size[0], "height": params.image_size[1]},
-        "cameras": cameras,  # per view, from the first episode; per-episode copies in episodes/<dir>/episode.json
+        "cameras": cameras,  # per view, from the first calibrated episode; an episode that differs says so
         "calibration_varies": varies,
         "episodes": [
             {"id": e["id"], "dir": e["dir"], "source": e["info"]["source"]["path"],
              "sha256": e["info"]["source"]["sha256"], "task": e["info"]["meta"].get("task"),
              "success": e["info"]["meta"].get("success"),
-             "views": {v: {"rows": e["info"]["views"][v]["rows"], "calib": e["info"]["views"][v]["calib"]}
-                       for v in params.views}}
+             "views": {v: _episode_view(e["info"]["views"][v], cameras[v]) for v in params.views}}
             for e in episodes
         ],
     }

@@ -131,7 +131,8 @@ def contact_sheet(ds_dir: Path, meta: dict[str, Any], max_episodes: int = 3, til
         tiles = []
         for ei, e in enumerate(meta["episodes"][:max_episodes]):
             d = ds_dir / "episodes" / e["dir"]
-            calib = e["views"][v]["calib"]
+            ev = e["views"][v]
+            calib = ev["calib"] if "calib" in ev else meta["cameras"].get(v)
             frames = np.load(d / f"{v}.frames.npy", mmap_mode="r")
             n = len(frames)
             if n == 0:

@@ -221,8 +221,10 @@ def test_rebuild_is_skipped_when_nothing_changed_and_incremental_otherwise(tmp_p
     first = build_dataset(raw, out, params, contact_episodes=0)
     assert (first.built, first.reused, first.up_to_date) == (2, 0, False)
     stamp = (out / "episodes" / "ep0" / "F.frames.npy").stat().st_mtime_ns
-    again = build_dataset(raw, out, params, contact_episodes=0)
+    said: list[str] = []
+    again = build_dataset(raw, out, params, contact_episodes=0, progress=said.append)
     assert again.up_to_date and again.built == 0
+    assert not any("hashing" in m for m in said)  # unchanged size and mtime: the recorded hash stands
     write_episode(raw, "ep2", 24, cameras=["F"], seed=2)
     third = build_dataset(raw, out, params, contact_episodes=0)
     assert (third.built, third.reused) == (1, 2) and third.summary["episodes"] == 3
@@ -338,3 +340,24 @@ def test_contact_sheet_action_path_retraces_the_state_path(raw_dir, tmp_path, sp
                                  ds.meta["state_frame"], d.calib)
     np.testing.assert_allclose(pos_cam, load_rig("five15").cameras["FL"].to_camera(trajectory(N, 0)[1]), atol=1e-5)
     np.testing.assert_allclose(path, pos_cam, atol=1e-4)
+
+
+def test_an_episode_from_another_camera_placement_keeps_its_own_calibration(tmp_path):
+    raw = tmp_path / "raw"
+    moved = tmp_path / "moved.yaml"
+    moved.write_text("name: moved\ndistance: 1.2\ncameras:\n  F: {yaw_deg: 5}\n")
+    write_episode(raw, "a", 24, cameras=["F"])
+    write_episode(raw, "b", 24, cameras=["F"], rig=str(moved))
+    out = tmp_path / "ds"
+    r = build_dataset(raw, out, BuildParams(views=("F",), image_size=(32, 24)), contact_episodes=0)
+    store = DatasetStore(out)
+    assert store.meta["calibration_varies"] == {"F": True}
+    by_ep = {d.episode_id: d for d in store.demos}
+    np.testing.assert_allclose(by_ep["a"].calib["position"], load_rig("five15").cameras["F"].position, atol=1e-9)
+    np.testing.assert_allclose(by_ep["b"].calib["position"], load_rig(str(moved)).cameras["F"].position, atol=1e-9)
+    # each pseudo-demo's actions went through its own camera's R_ext
+    for ep_id, rig in (("a", load_rig("five15")), ("b", load_rig(str(moved)))):
+        d = by_ep[ep_id]
+        base = from_space(np.load(d.path("action")).astype(np.float64), "camera", R_ext=rig.cameras["F"].R_ext)
+        np.testing.assert_allclose(base, trajectory(24, 0)[0], atol=2e-6)
+    assert r.summary["episodes"] == 2
