@@ -18,7 +18,8 @@ Layout of a dataset directory::
 Builds are incremental: an episode directory is reused when its source hash and the
 parameters that shaped its arrays are unchanged, and the whole build is skipped when nothing
 changed. A source whose path, size and mtime match the last complete build keeps its recorded
-hash instead of being read again (``--force`` rehashes and rebuilds everything). Each episode is written under a temporary name and renamed into place when complete.
+hash instead of being read again (``--force`` rehashes and rebuilds everything). Each episode
+is written under a temporary name and renamed into place when complete.
 """
 
 from __future__ import annotations

@@ -71,7 +71,8 @@ def format_summary(s: dict[str, Any], path: Path | None = None) -> str:
         f"    min         {_fmt_vec(a['min'])}",
         f"    max         {_fmt_vec(a['max'])}",
         f"    |normed|max {_fmt_vec(a['normalised_abs_max'])}",
-        f"  normalizer    pos_scale {s['normalizer']['pos_scale']:.5f} m   rot_scale {s['normalizer']['rot_scale']:.5f} rad",
+        f"  normalizer    pos_scale {s['normalizer']['pos_scale']:.5f} m   "
+        f"rot_scale {s['normalizer']['rot_scale']:.5f} rad",
     ]
     if s.get("flagged_episodes"):
         lines.append(f"  flagged       {len(s['flagged_episodes'])} episodes: " + "; ".join(

@@ -316,7 +316,8 @@ def test_cli_build_and_info(raw_dir, tmp_path, capsys):
     assert viewscale(["dataset", "info", str(out), "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["samples"] > 0
     for argv, needle in ((["--views", "F,NOPE"], "'NOPE'"), (["--views", ","], "empty view selection")):
-        rc = viewscale(["dataset", "build", "--raw", str(raw_dir), "--out", str(tmp_path / "bad"), "--jobs", "1", *argv])
+        rc = viewscale(["dataset", "build", "--raw", str(raw_dir), "--out", str(tmp_path / "bad"), "--jobs", "1",
+                        *argv])
         err = capsys.readouterr().err
         last = err.strip().splitlines()[-1]
         assert rc == 2 and needle in last and last.startswith("error:") and "Traceback" not in err
