@@ -105,6 +105,8 @@ def _build(args: argparse.Namespace) -> int:
                                jobs=args.jobs)
     except (DatasetError, EpisodeError) as exc:
         return _err(str(exc))
+    except OSError as exc:  # an unwritable output, a full disk
+        return _err(f"{exc.strerror or exc}: {exc.filename or args.out}")
     s = result.summary
     if args.json:
         print(json.dumps(s))
