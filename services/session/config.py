@@ -5,7 +5,7 @@ from pydantic import Field
 from services.core.bus import BusConfig
 from services.core.config import Frozen
 
-DEFAULT_MAX_TICKS = {"lift": 200, "can": 400, "square": 500}
+DEFAULT_MAX_TICKS = {"lift": 150, "can": 300, "square": 400}  # the sim tasks' horizons
 
 
 class SessionConfig(Frozen):
