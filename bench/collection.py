@@ -39,6 +39,7 @@ def main() -> None:
     ap.add_argument("--hz", type=float, default=20.0)
     args = ap.parse_args()
 
+    load0 = round(os.getloadavg()[0], 2)  # other work on the machine skews CPU and rate numbers
     with tempfile.TemporaryDirectory(prefix="vs-bench-") as tmp:
         out = Path(tmp)
         sim = [f"rig={args.rig}", f"task={args.task}", f"width={args.size}", f"height={args.size}",
@@ -64,6 +65,7 @@ def main() -> None:
     recorded = [a.meta for a in attempts if a.meta is not None]
     ticks = sum(a.ticks for a in attempts)
     report("collection", {
+        "load_avg_1m_before_after": [load0, round(os.getloadavg()[0], 2)],
         "rig": args.rig, "size": args.size, "control_hz": args.hz, "seconds": round(wall, 1),
         "episodes": len(attempts), "recorded": len(recorded), "ticks": ticks,
         "achieved_hz_mean": round(sum(m.achieved_hz for m in recorded) / max(1, len(recorded)), 2),
