@@ -34,6 +34,11 @@ if command -v docker >/dev/null 2>&1 && engine_up; then
   exit 0
 fi
 
+if command -v docker >/dev/null 2>&1 && [[ "$(docker info 2>&1 || true)" == *"permission denied"* ]]; then
+  log "an engine runs but $(id -un) may not use its socket: join the docker group or run as root"
+  exit 1
+fi
+
 start=$(date +%s)
 if ! command -v dockerd >/dev/null 2>&1 && [ ! -x /usr/sbin/dockerd ]; then
   log "dockerd missing: installing Debian's docker.io"
