@@ -8,7 +8,7 @@ from services.core.config import Frozen
 
 class SimConfig(Frozen):
     bus: BusConfig = BusConfig()  # how to reach the session's Zenoh network
-    rig: str = "five15"  # camera rig preset name (deploy/rigs) or path to a rig YAML
+    rig: str = "five15"  # camera rig preset name (services/core/rigs) or path to a rig YAML
     task: str = "lift"  # scene loaded at start-up; each RESET may name another
     seed: int = 0  # seed of the start-up scene
     width: int = Field(84, ge=16)  # rendered frame width (px)

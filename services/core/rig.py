@@ -1,6 +1,6 @@
 """Camera rigs: named cameras placed by rotations around the workspace centre.
 
-A rig YAML (presets in ``deploy/rigs/``) gives a base view -- the front camera F, at
+A rig YAML (presets in ``services/core/rigs/``) gives a base view -- the front camera F, at
 ``distance`` from ``center``, seen from ``azimuth_deg`` (0 = from +x, facing the robot) and
 ``elevation_deg`` above the table, image-up as close to world +z as possible -- and each camera
 as a rigid rotation of that camera around the centre: ``pitch_deg`` > 0 moves it up about the
@@ -33,7 +33,7 @@ from scipy.spatial.transform import Rotation
 from services.core.config import ConfigError, Frozen, read_yaml
 from services.core.topics import WORLD_FRAME
 
-RIG_DIR = Path(__file__).resolve().parents[2] / "deploy" / "rigs"
+RIG_DIR = Path(__file__).resolve().parent / "rigs"  # shipped as package data
 
 
 class CameraSpec(Frozen):
