@@ -31,7 +31,7 @@ from google.protobuf.message import DecodeError, Message
 
 from services.core.bus import Bus, Received
 from services.core.clock import now_ns
-from services.core.topics import EPISODE, EPISODE_CONTROL, ROBOT_STATE, Topic, topic_for_key
+from services.core.topics import APPLIED_ACTION, EPISODE, EPISODE_CONTROL, ROBOT_STATE, Topic, topic_for_key
 from services.pb.episode_pb2 import (
     EPISODE_COMMAND_DISCARD,
     EPISODE_COMMAND_START,
@@ -41,6 +41,7 @@ from services.pb.episode_pb2 import (
     EpisodeReply,
     EpisodeRequest,
 )
+from services.core.runtime import serve
 from services.recorder.config import RecorderConfig
 from services.recorder.validate import MalformedPayload, capture_ns, header_of, parse
 from services.recorder.writer import (
@@ -91,6 +92,7 @@ class _Episode:
         self.missing: Counter[str] = Counter()  # key -> messages skipped by forward sequence jumps
         self.last_seq: dict[str, int] = {}
         self.cameras: set[str] = set()
+        self.stale = 0  # applied actions that were a hold for want of a command
         self.state_n = 0
         self.state_first = 0
         self.state_last = 0
@@ -484,6 +486,8 @@ class Recorder:
                 else:
                     ep.missing[key] += header.seq - last - 1
             ep.last_seq[key] = header.seq
+        if key == APPLIED_ACTION.key and msg.stale:
+            ep.stale += 1
         if key == ROBOT_STATE.key:
             if ep.state_n == 0:
                 ep.state_first = stamp
@@ -506,6 +510,7 @@ class Recorder:
         meta.drops.update(drops)
         meta.malformed.update({k: v for k, v in ep.malformed.items() if v})
         meta.gaps.update({k: v for k, v in ep.gaps.items() if v})
+        meta.stale_ticks = ep.stale
         meta.end_ns = now_ns()
 
         flags = list(ep.events)
@@ -522,6 +527,8 @@ class Recorder:
         unexplained = {k: m for k, m in ep.missing.items() if m > drops.get(k, 0)}
         if unexplained:
             flags.append(f"sequence gaps: messages lost upstream ({_fmt(unexplained)})")
+        if ep.stale:
+            flags.append(f"stale: {ep.stale} ticks held still without a fresh command (teleop late or missing)")
         if ticks and states != ticks:
             flags.append(f"robot/state: {states} states for {ticks} ticks")
         for cam, n in sorted(meta.frames.items()):
@@ -567,11 +574,4 @@ class Recorder:
 
 
 def main(cfg: RecorderConfig) -> int:
-    from services.core.runtime import announce_ready, stop_on_signals
-
-    stop = threading.Event()
-    stop_on_signals(stop)
-    with Bus(cfg.bus) as bus, Recorder(cfg, bus) as recorder:
-        announce_ready("recorder", str(cfg.out_dir))
-        recorder.run(stop)
-    return 0
+    return serve("recorder", cfg.bus, lambda bus: Recorder(cfg, bus), str(cfg.out_dir))

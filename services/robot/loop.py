@@ -4,8 +4,10 @@ One tick k:
   1. observe: read the driver; observers publish what belongs to tick k (camera frames, task
      state), then RobotState(tick=k) goes out last, so a teleop that reacts to the state finds
      the tick's other messages already sent;
-  2. wait for the EefCommand answering tick k, until a deadline (a fraction of the period in
-     real time; ``command_timeout_s`` in lockstep);
+  2. wait for the EefCommand answering tick k, until a deadline: in real time a fraction of
+     the period from the tick's start, but never less than ``min_command_wait`` of a period
+     after the state went out (slow rendering must not starve the teleop: a late tick beats
+     a stale action); in lockstep ``command_timeout_s``;
   3. apply it -- or hold still with the last gripper target if none came (flagged ``stale``) --
      and publish AppliedAction(tick=k): the action that really ran between state k and k+1.
 So an episode always has exactly one applied action per observation, which is what
@@ -73,6 +75,7 @@ class ControlLoop:
         command_timeout_s: float = 0.5,
         command_wait_fraction: float = 0.8,
         observers: list[Observer] | None = None,
+        min_command_wait: float = 0.25,
     ):
         self.bus = bus
         self.driver = driver
@@ -80,6 +83,8 @@ class ControlLoop:
         self.realtime = realtime
         self.command_timeout_s = command_timeout_s
         self.command_wait_fraction = command_wait_fraction
+        self.min_command_wait = min_command_wait
+        self._published_at = 0.0  # monotonic time the tick's state went out
         self.observers = list(observers or [])
         self.tick = 0
         self.episode_id = ""
@@ -139,12 +144,17 @@ class ControlLoop:
             observer(self.tick, stamp)
         self._seq += 1
         self._state_pub.put(state_msg(snapshot, self.tick, stamp, self._seq, self.episode_id))
+        self._published_at = time.monotonic()
         return t0
 
     def act(self, t0: float) -> None:
         """Wait for the tick's command, execute it (or hold), publish what ran."""
-        wait = self.command_wait_fraction / self.control_hz if self.realtime else self.command_timeout_s
-        delta = self._wait_command(self.tick, t0 + wait)
+        if self.realtime:
+            period = 1.0 / self.control_hz
+            deadline = max(t0 + self.command_wait_fraction * period, self._published_at + self.min_command_wait * period)
+        else:
+            deadline = self._published_at + self.command_timeout_s
+        delta = self._wait_command(self.tick, deadline)
         stale = delta is None
         if stale:
             self.stale_ticks += 1
