@@ -24,6 +24,7 @@ from services.core import topics
 from services.core.bus import Bus
 from services.core.clock import Rate, now_ns
 from services.core.rig import load_rig
+from services.core.runtime import serve
 from services.pb.common_pb2 import Header
 from services.pb.episode_pb2 import SimCommand, SimControlReply, SimControlRequest
 from services.pb.sensors_pb2 import ObjectPose, TaskState
@@ -165,11 +166,4 @@ class SimService:
 
 
 def main(cfg: SimConfig) -> int:
-    from services.core.runtime import announce_ready, stop_on_signals
-
-    stop = threading.Event()
-    stop_on_signals(stop)
-    with Bus(cfg.bus) as bus, SimService(cfg, bus) as service:
-        announce_ready("sim", f"{cfg.task}/{service.rig.name}/{cfg.width}x{cfg.height}")
-        service.run(stop)
-    return 0
+    return serve("sim", cfg.bus, lambda bus: SimService(cfg, bus), f"{cfg.task}/{cfg.rig}/{cfg.width}x{cfg.height}")

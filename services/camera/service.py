@@ -16,6 +16,7 @@ from services.camera.config import CameraConfig
 from services.camera.publisher import CameraPublisher
 from services.core.bus import Bus
 from services.core.clock import Rate, now_ns
+from services.core.runtime import serve
 
 log = logging.getLogger(__name__)
 
@@ -59,11 +60,4 @@ class CameraService:
 
 
 def main(cfg: CameraConfig) -> int:
-    from services.core.runtime import announce_ready, stop_on_signals
-
-    stop = threading.Event()
-    stop_on_signals(stop)
-    with Bus(cfg.bus) as bus, CameraService(cfg, bus, make_backend(cfg)) as service:
-        announce_ready("camera", f"{cfg.backend}/{cfg.rig}")
-        service.run(stop)
-    return 0
+    return serve("camera", cfg.bus, lambda bus: CameraService(cfg, bus, make_backend(cfg)), f"{cfg.backend}/{cfg.rig}")

@@ -32,3 +32,16 @@ def announce_ready(service: str, address: str) -> None:
     """Print the one line tests and compose wait on: ``ready <service> <address>``."""
     print(f"ready {service} {address}", flush=True)
     logging.getLogger(service).info("ready at %s", address)
+
+
+def serve(name: str, bus_config, build, address: str) -> int:
+    """The body of every service's ``main``: open the bus, build the service (a context manager
+    taking the bus), print the ready line, run until SIGTERM/SIGINT, close everything."""
+    from services.core.bus import Bus  # here, not at import: runtime stays free of zenoh
+
+    stop = threading.Event()
+    stop_on_signals(stop)
+    with Bus(bus_config) as bus, build(bus) as service:
+        announce_ready(name, address)
+        service.run(stop)
+    return 0

@@ -11,6 +11,7 @@ import logging
 import threading
 
 from services.core.bus import Bus
+from services.core.runtime import serve
 from services.robot.backends.base import RobotDriver, load_driver_class
 from services.robot.config import RobotConfig
 from services.robot.loop import ControlLoop
@@ -51,11 +52,4 @@ class RobotService:
 
 
 def main(cfg: RobotConfig) -> int:
-    stop = threading.Event()
-    from services.core.runtime import announce_ready, stop_on_signals
-
-    stop_on_signals(stop)
-    with Bus(cfg.bus) as bus, RobotService(cfg, bus, make_driver(cfg)) as service:
-        announce_ready("robot", cfg.driver)
-        service.run(stop)
-    return 0
+    return serve("robot", cfg.bus, lambda bus: RobotService(cfg, bus, make_driver(cfg)), cfg.driver)

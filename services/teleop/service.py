@@ -15,6 +15,7 @@ from collections import Counter, OrderedDict
 from services.core import topics
 from services.core.bus import Bus, Received
 from services.core.clock import now_ns
+from services.core.runtime import serve
 from services.pb.common_pb2 import Header
 from services.pb.control_pb2 import EefCommand
 from services.pb.sensors_pb2 import RobotState, TaskState
@@ -123,11 +124,4 @@ class TeleopService:
 
 
 def main(cfg: TeleopConfig) -> int:
-    from services.core.runtime import announce_ready, stop_on_signals
-
-    stop = threading.Event()
-    stop_on_signals(stop)
-    with Bus(cfg.bus) as bus, TeleopService(cfg, bus, make_source(cfg)) as service:
-        announce_ready("teleop", cfg.source)
-        service.run(stop)
-    return 0
+    return serve("teleop", cfg.bus, lambda bus: TeleopService(cfg, bus, make_source(cfg)), cfg.source)
