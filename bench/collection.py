@@ -71,6 +71,8 @@ def main() -> None:
         "achieved_hz_mean": round(sum(m.achieved_hz for m in recorded) / max(1, len(recorded)), 2),
         "achieved_hz_min": round(min((m.achieved_hz for m in recorded), default=0.0), 2),
         "drops": int(sum(sum(m.drops.values()) for m in recorded)),
+        "stale_ticks": int(sum(m.stale_ticks for m in recorded)),
+        "failed_attempts": len(attempts) - len(recorded),
         "flagged": sum(1 for m in recorded if m.flags),
         "cpu_percent": cpu,
     })
