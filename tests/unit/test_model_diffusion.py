@@ -131,5 +131,5 @@ def test_presets_build_valid_configs():
     paper = ModelConfig.model_validate(preset("paper")["model"])
     assert paper.down_dims == (512, 1024, 2048) and paper.diffusion_step_embed_dim == 128
     assert paper.kernel_size == 5 and paper.n_groups == 8
-    assert tiny.down_dims == (32, 64)
-    assert DiffusionPolicy(tiny).num_parameters() < 1_000_000
+    assert tiny.down_dims == (64, 128)
+    assert DiffusionPolicy(tiny).num_parameters() < 2_000_000

@@ -22,14 +22,14 @@ from typing import Any
 PRESETS: dict[str, dict[str, Any]] = {
     "tiny": {
         "batch_size": 32,
-        "optim": {"lr": 1e-3, "warmup_steps": 50, "weight_decay": 1e-6},
+        "optim": {"lr": 3e-3, "warmup_steps": 20, "weight_decay": 0.0},
         "ema": {"power": 0.75},
         "val_every": 100,
         "checkpoint_every": 200,
         "model": {
             "encoder": {"width": 8, "stage_strides": [1, 2, 1, 1], "num_keypoints": 16, "feature_dim": 32},
-            "down_dims": [32, 64],
-            "diffusion_step_embed_dim": 32,
+            "down_dims": [64, 128],
+            "diffusion_step_embed_dim": 64,
         },
     },
     "paper": {
