@@ -509,7 +509,10 @@ def train(
                 bar.update(1)
 
             last = step == cfg.steps
-            do_val = main and data.val is not None and ((cfg.val_every and step % cfg.val_every == 0) or last)
+            # decided alike on every rank, so that all of them meet at the barrier below
+            val_due = data.val is not None and bool((cfg.val_every and step % cfg.val_every == 0) or last)
+            ckpt_due = bool((cfg.checkpoint_every and step % cfg.checkpoint_every == 0) or last)
+            do_val = main and val_due
             do_log = step % cfg.log_every == 0 or last or do_val
             if do_log and main:
                 now = time.perf_counter()
@@ -541,9 +544,9 @@ def train(
                 if do_val or last:
                     plot_losses(history, out / "loss.png")
                 interval_losses, t_interval, n_interval = [], now, 0
-            if main and ((cfg.checkpoint_every and step % cfg.checkpoint_every == 0) or last):
+            if main and ckpt_due:
                 result.checkpoint = save(step, result.loss, result.val_loss)
-            if distributed and (do_val or (cfg.checkpoint_every and step % cfg.checkpoint_every == 0)):
+            if distributed and (val_due or ckpt_due):
                 dist.barrier()
         if result.stopped and main and step > start:
             result.checkpoint = save(step, result.loss, result.val_loss)

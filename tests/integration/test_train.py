@@ -193,3 +193,30 @@ def test_overfitting_one_short_episode_reproduces_its_actions(sim_dataset, tmp_p
 # (mostly the gripper's closing tick being off by one or two); an untrained policy is above 1x.
 OVERFIT_STEPS = 1500
 OVERFIT_TOLERANCE = 0.5
+
+
+@pytest.mark.slow
+def test_torchrun_trains_with_two_processes(sim_dataset, tmp_path):
+    """DistributedDataParallel on the CPU (gloo): both ranks step together, rank 0 validates and writes."""
+    import shutil
+    import socket
+    import subprocess
+    import sys
+
+    torchrun = shutil.which("torchrun", path=str(Path(sys.executable).parent))
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    out = tmp_path / "ddp"
+    cmd = [torchrun, "--nproc_per_node", "2", "--master_addr", "127.0.0.1", "--master_port", str(port),
+           "-m", "services.cli", "train", "--data", str(sim_dataset), "--steps", "4", "--out", str(out),
+           "--workers", "0", "--device", "cpu", "--no-progress", "--set", "batch_size=4", "--set", "val_every=2"]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300, cwd=Path(__file__).resolve().parents[2],
+                          env={**os.environ, "OMP_NUM_THREADS": "1"})
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    state = json.loads((out / "checkpoints" / "step_0000004" / "train_state.json").read_text())
+    assert state["world"] == 2
+    rows = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in rows] == [2, 4] and all("val_loss" in r for r in rows)
+    assert rows[-1]["samples_s"] == pytest.approx(rows[-1]["it_s"] * 8, rel=0.01)  # 2 ranks x batch 4
+    assert load_policy(out).info["step"] == 4
