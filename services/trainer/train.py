@@ -229,11 +229,14 @@ class EMA:
     @torch.no_grad()
     def update(self, model: torch.nn.Module, step: int) -> None:
         d = self.decay(step)
-        for ema_t, t in zip(self.model.state_dict().values(), model.state_dict().values()):
-            if ema_t.dtype.is_floating_point:
+        frozen = {name for name, p in model.named_parameters() if not p.requires_grad}  # e.g. the ViT under LoRA
+        ema_state = self.model.state_dict()
+        for name, t in model.state_dict().items():
+            ema_t = ema_state[name]
+            if ema_t.dtype.is_floating_point and name not in frozen:
                 ema_t.mul_(d).add_(t.detach(), alpha=1.0 - d)
             else:
-                ema_t.copy_(t)
+                ema_t.copy_(t)  # frozen weights and integer buffers are copied, as diffusion_policy does
 
 
 def pick_device(spec: str, local_rank: int) -> torch.device:

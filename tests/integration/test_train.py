@@ -220,3 +220,40 @@ def test_torchrun_trains_with_two_processes(sim_dataset, tmp_path):
     assert [r["step"] for r in rows] == [2, 4] and all("val_loss" in r for r in rows)
     assert rows[-1]["samples_s"] == pytest.approx(rows[-1]["it_s"] * 8, rel=0.01)  # 2 ranks x batch 4
     assert load_policy(out).info["step"] == 4
+
+
+def test_dinov3_lora_policy_trains_and_reloads_without_the_pretrained_file(sim_dataset, tmp_path):
+    """The paper's encoder path on a tiny random ViT: local safetensors in, LoRA trained, and the
+    checkpoint alone rebuilds the policy (the pretrained file is not needed to serve it)."""
+    from safetensors.torch import save_file
+    from transformers import DINOv3ViTConfig, DINOv3ViTModel
+
+    vit_cfg = dict(hidden_size=32, intermediate_size=64, num_attention_heads=2, num_hidden_layers=2,
+                   num_register_tokens=2, patch_size=8)
+    torch.manual_seed(0)
+    weights = tmp_path / "dinov3-tiny.safetensors"
+    save_file({k: v.contiguous() for k, v in DINOv3ViTModel(DINOv3ViTConfig(**vit_cfg)).state_dict().items()},
+              str(weights))
+    cfg = train_config_from_dict(tiny(sim_dataset, tmp_path / "run", steps=2, model={"encoder": {
+        "kind": "dinov3", "vit_config": vit_cfg, "vit_weights": str(weights), "lora_rank": 4, "feature_dim": 16}}))
+    result = train(cfg)
+    served = load_file(str(result.checkpoint / "model.safetensors"))
+    pretrained = load_file(str(weights))
+    q = "encoder.vit.model.layer.0.attention.q_proj"
+    assert torch.equal(served[q + ".base_layer.weight"], pretrained["model.layer.0.attention.q_proj.weight"])  # frozen
+    weights.unlink()
+    loaded = load_policy(tmp_path / "run")
+    assert loaded.info["model"]["encoder"]["kind"] == "dinov3"
+    assert loaded.policy.encoder.crop == (24, 24)  # 0.9 x 32 rounded down to whole 8-px patches
+    assert all(torch.equal(v, loaded.policy.state_dict()[k]) for k, v in served.items())
+
+
+@pytest.mark.gpu
+def test_gpu_training_uses_bf16_and_channels_last(sim_dataset, tmp_path):
+    cfg = train_config_from_dict(tiny(sim_dataset, tmp_path / "run", steps=3, device="cuda"))
+    result = train(cfg)
+    assert result.step == 3 and np.isfinite(result.loss)
+    loaded = load_policy(tmp_path / "run", device="cuda")
+    obs = torch.rand(1, 2, 3, 32, 32, device="cuda") * 2 - 1
+    chunk = sample(loaded.policy, obs, torch.zeros(1, 2, 10, device="cuda"))
+    assert chunk.shape == (1, 16, 7) and torch.isfinite(chunk).all()
