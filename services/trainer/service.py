@@ -236,11 +236,7 @@ class TrainerService:
 
 
 def main(cfg: TrainerServiceConfig) -> int:
-    from services.core.runtime import announce_ready, stop_on_signals
+    from services.core.runtime import serve
 
-    stop = threading.Event()
-    stop_on_signals(stop)
-    with Bus(cfg.bus) as bus, TrainerService(cfg, bus) as service:
-        announce_ready(SERVICE_NAME, f"{bus.key(TRAIN_REQUEST)}" + (f" jobs={cfg.jobs_dir}" if cfg.jobs_dir else ""))
-        service.run(stop)
-    return 0
+    address = f"{cfg.bus.namespace}/{TRAIN_REQUEST}" + (f" jobs={cfg.jobs_dir}" if cfg.jobs_dir else "")
+    return serve(SERVICE_NAME, cfg.bus, lambda bus: TrainerService(cfg, bus), address)
