@@ -143,6 +143,16 @@ class _Scripted(Expert):
             self._go("approach")
         return action
 
+    def _release_and_retreat(self, robot: RobotSnapshot, height: float) -> Action:
+        """Phase "release": open in place; then ("retreat") rise to ``height``, gripper open."""
+        if self.phase == "release":
+            action, _, _ = self._move(robot, robot.eef_pos.copy(), 0.0)
+            if robot.gripper < 0.2:
+                self._go("retreat")
+            return action
+        action, _, _ = self._move(robot, np.array([robot.eef_pos[0], robot.eef_pos[1], height]), 0.0)
+        return action
+
     @abstractmethod
     def _act(self, robot: RobotSnapshot, objects: dict[str, ObjectPose]) -> Action: ...
 
@@ -238,13 +248,7 @@ class CanExpert(_Scripted):
             if ep < 0.01:
                 self._go("release")
             return action
-        if self.phase == "release":
-            action, _, _ = self._move(robot, robot.eef_pos.copy(), 0.0)
-            if robot.gripper < 0.2:
-                self._go("retreat")
-            return action
-        action, _, _ = self._move(robot, np.array([robot.eef_pos[0], robot.eef_pos[1], self.carry_z]), 0.0)
-        return action
+        return self._release_and_retreat(robot, self.carry_z)
 
 
 class SquareExpert(_Scripted):
@@ -304,13 +308,7 @@ class SquareExpert(_Scripted):
             if nut.pos[2] < self.insert_z + 0.01:
                 self._go("release")
             return action
-        if self.phase == "release":
-            action, _, _ = self._move(robot, robot.eef_pos.copy(), 0.0)
-            if robot.gripper < 0.2:
-                self._go("retreat")
-            return action
-        action, _, _ = self._move(robot, np.array([robot.eef_pos[0], robot.eef_pos[1], self.carry_z]), 0.0)
-        return action
+        return self._release_and_retreat(robot, self.carry_z)
 
 
 def make_expert(task: str) -> Expert:
