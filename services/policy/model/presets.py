@@ -19,6 +19,25 @@ from __future__ import annotations
 import copy
 from typing import Any
 
+_PAPER: dict[str, Any] = {
+    "batch_size": 64,
+    "optim": {"lr": 1e-4, "warmup_steps": 500, "weight_decay": 1e-6, "betas": [0.95, 0.999]},
+    "ema": {"power": 0.75},
+    "model": {
+        "encoder": {"kind": "resnet18", "width": 64, "stage_strides": [1, 2, 2, 2], "num_keypoints": 32, "feature_dim": 64},
+        "down_dims": [512, 1024, 2048],
+        "diffusion_step_embed_dim": 128,
+    },
+}
+
+
+def _paper(**model: Any) -> dict[str, Any]:
+    """The paper preset with some ``model`` entries replaced whole."""
+    out = copy.deepcopy(_PAPER)
+    out["model"].update(model)
+    return out
+
+
 PRESETS: dict[str, dict[str, Any]] = {
     "tiny": {
         "batch_size": 32,
@@ -32,36 +51,12 @@ PRESETS: dict[str, dict[str, Any]] = {
             "diffusion_step_embed_dim": 64,
         },
     },
-    "paper": {
-        "batch_size": 64,
-        "optim": {"lr": 1e-4, "warmup_steps": 500, "weight_decay": 1e-6, "betas": [0.95, 0.999]},
-        "ema": {"power": 0.75},
-        "model": {
-            "encoder": {"kind": "resnet18", "width": 64, "stage_strides": [1, 2, 2, 2], "num_keypoints": 32, "feature_dim": 64},
-            "down_dims": [512, 1024, 2048],
-            "diffusion_step_embed_dim": 128,
-        },
-    },
-    "paper-small": {
-        "batch_size": 64,
-        "optim": {"lr": 1e-4, "warmup_steps": 500, "weight_decay": 1e-6, "betas": [0.95, 0.999]},
-        "ema": {"power": 0.75},
-        "model": {
-            "encoder": {"kind": "resnet18", "width": 64, "stage_strides": [1, 2, 2, 2], "num_keypoints": 32, "feature_dim": 64},
-            "down_dims": [256, 512, 1024],
-            "diffusion_step_embed_dim": 128,
-        },
-    },
-    "paper-dinov3": {
-        "batch_size": 64,
-        "optim": {"lr": 1e-4, "warmup_steps": 500, "weight_decay": 1e-6, "betas": [0.95, 0.999]},
-        "ema": {"power": 0.75},
-        "model": {
-            "encoder": {"kind": "dinov3", "feature_dim": 256, "lora_rank": 16, "lora_alpha": 32},
-            "down_dims": [256, 512, 1024],
-            "diffusion_step_embed_dim": 128,
-        },
-    },
+    "paper": _PAPER,
+    "paper-small": _paper(down_dims=[256, 512, 1024]),
+    "paper-dinov3": _paper(
+        encoder={"kind": "dinov3", "feature_dim": 256, "lora_rank": 16, "lora_alpha": 32},
+        down_dims=[256, 512, 1024],
+    ),
 }
 
 
