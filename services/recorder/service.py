@@ -31,6 +31,7 @@ from google.protobuf.message import DecodeError, Message
 
 from services.core.bus import Bus, Received
 from services.core.clock import now_ns
+from services.core.runtime import serve
 from services.core.topics import APPLIED_ACTION, EPISODE, EPISODE_CONTROL, ROBOT_STATE, Topic, topic_for_key
 from services.pb.episode_pb2 import (
     EPISODE_COMMAND_DISCARD,
@@ -41,7 +42,6 @@ from services.pb.episode_pb2 import (
     EpisodeReply,
     EpisodeRequest,
 )
-from services.core.runtime import serve
 from services.recorder.config import RecorderConfig
 from services.recorder.validate import MalformedPayload, capture_ns, header_of, parse
 from services.recorder.writer import (
