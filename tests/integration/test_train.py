@@ -187,12 +187,16 @@ def test_overfitting_one_short_episode_reproduces_its_actions(sim_dataset, tmp_p
     err = ((pred - true) ** 2).mean().item()
     spread = ((true - true.mean(0, keepdim=True)) ** 2).mean().item()
     assert err < OVERFIT_TOLERANCE * spread, (err, spread)
+    pos_err = ((pred[..., :3] - true[..., :3]) ** 2).mean().item()
+    pos_spread = ((true[..., :3] - true[..., :3].mean(0, keepdim=True)) ** 2).mean().item()
+    assert pos_err < 0.3 * pos_spread, (pos_err, pos_spread)  # the motion itself, not just the gripper
 
 
-# Measured: after 1500 steps the executed actions' MSE is about 0.4x their spread over the episode
-# (mostly the gripper's closing tick being off by one or two); an untrained policy is above 1x.
-OVERFIT_STEPS = 1500
-OVERFIT_TOLERANCE = 0.5
+# Measured (normalised actions, executed steps): after 4000 steps the MSE is 0.11x their spread
+# over the episode (position 0.15x, rotation 0.17x, gripper 0.09x); after 1500 steps it was still
+# 0.33x, and an untrained policy is above 1x. 4000 tiny steps take about 3.5 min on 2 cores.
+OVERFIT_STEPS = 4000
+OVERFIT_TOLERANCE = 0.2
 
 
 @pytest.mark.slow
