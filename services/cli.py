@@ -16,6 +16,7 @@ import argparse
 import importlib
 import logging
 import os
+import signal
 import sys
 from pathlib import Path
 
@@ -36,13 +37,25 @@ def _collect(args: argparse.Namespace) -> int:
             if not rest:
                 raise ConfigError(f"--set {item!r} must name a service: sim.width=224, recorder.queue_size=256")
             extra.setdefault(service, []).append(rest)
+        # SIGTERM (and SIGINT, even where a parent shell ignores it) unwinds like Ctrl-C, so the
+        # episode in progress is closed and kept (flagged) and every service is stopped.
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            signal.signal(sig, _interrupt)
         result = collect(args.task, args.episodes, args.rig, Path(args.out), config=args.config, seed=args.seed,
                          size=args.size, realtime=not args.fast, control_hz=args.hz, max_ticks=args.max_ticks,
                          extra=extra)
     except (CollectError, ConfigError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt as exc:
+        print(f"interrupted ({exc or 'SIGINT'}): services stopped; episodes recorded so far are in {args.out}",
+              file=sys.stderr)
+        return 130
     return 0 if len(result.recorded) >= args.episodes else 1
+
+
+def _interrupt(signum, _frame):
+    raise KeyboardInterrupt(signal.Signals(signum).name)
 
 
 def _episode(args: argparse.Namespace) -> int:

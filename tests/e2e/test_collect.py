@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -104,3 +105,39 @@ def test_bad_arguments_fail_fast_with_one_line(tmp_path):
     assert "error: unknown rig 'six15'" in proc.stderr and "Traceback" not in proc.stderr
     proc = run_collect(tmp_path, "--task", "stack", timeout=60)
     assert proc.returncode == 2 and "unknown task 'stack'" in proc.stderr
+
+
+def test_sigterm_mid_session_keeps_the_partial_episode_and_stops_every_service(tmp_path):
+    import signal
+
+    import psutil
+
+    cmd = [sys.executable, "-m", "services.cli", "collect", "--task", "can", "--episodes", "20", "--rig", "three15",
+           "--out", str(tmp_path)]
+    proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    children: list[psutil.Process] = []
+    for line in proc.stdout:  # wait until the first episode is recorded: the second is under way
+        children = children or psutil.Process(proc.pid).children()
+        if line.startswith("[1/20]"):
+            break
+    else:
+        raise AssertionError(f"no episode recorded: {proc.stderr.read()}")
+    assert {c.cmdline()[2] for c in children} >= {"sim", "services.teleop", "services.recorder"}
+    log = tmp_path / "logs" / "recorder.log"
+    deadline = time.monotonic() + 60
+    while log.read_text().count(" started: ") < 2:  # the second episode is being recorded
+        assert time.monotonic() < deadline, log.read_text()[-2000:]
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGTERM)
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130, err
+    assert "interrupted (SIGTERM)" in err and "Traceback" not in err, err
+    gone, alive = psutil.wait_procs(children, timeout=30)
+    assert not alive, f"services left running: {[c.cmdline() for c in alive]}"
+    assert not list(tmp_path.glob("*.part")), "an episode was left unclosed"
+    episodes = [read_episode(f) for f in sorted(tmp_path.glob("*.mcap"))]
+    done = [e for e in episodes if e.metadata["success"]]
+    cut = [e for e in episodes if not e.metadata["success"]]
+    assert len(done) >= 1 and all(not e.flags for e in done)
+    # the episode under way when the signal came is kept, closed and flagged, never silently lost
+    assert len(cut) == 1 and cut[0].flags, [(e.path.name, e.metadata["success"], e.flags) for e in episodes]
