@@ -14,7 +14,7 @@ from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
 from google.protobuf.message import Message
 
-from services.pb import control_pb2, episode_pb2, sensors_pb2
+from services.pb import control_pb2, episode_pb2, sensors_pb2, trainer_pb2
 
 
 @dataclass(frozen=True)
@@ -47,10 +47,12 @@ APPLIED_ACTION = Topic("robot/applied", control_pb2.AppliedAction)
 COMMAND = Topic("teleop/command", control_pb2.EefCommand)
 TASK_STATE = Topic("sim/task", sensors_pb2.TaskState)
 EPISODE = Topic("recorder/episode", episode_pb2.EpisodeMeta)  # recorder announces finished episodes
+TRAIN_PROGRESS = Topic("trainer/progress", trainer_pb2.TrainProgress)  # the trainer service's runs
 
 # Queryables (request/reply, protobuf both ways).
 EPISODE_CONTROL = "recorder/control"  # EpisodeRequest -> EpisodeReply
 SIM_CONTROL = "sim/control"  # SimControlRequest -> SimControlReply
+TRAIN_REQUEST = "trainer/request"  # TrainRequest -> TrainReply
 
 WORLD_FRAME = "world"
 
@@ -64,7 +66,8 @@ def session_topics(cameras: list[str]) -> list[Topic]:
 
 
 def topic_for_key(key: str) -> Topic | None:
-    """Map a received relative key back to its Topic (None for keys outside the graph)."""
+    """Map a received key of a collection session back to its Topic (None for anything else,
+    trainer progress included: the recorder records exactly what this maps)."""
     fixed = {t.key: t for t in (ROBOT_STATE, APPLIED_ACTION, COMMAND, TASK_STATE, EPISODE)}
     if key in fixed:
         return fixed[key]

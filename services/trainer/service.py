@@ -28,7 +28,7 @@ from typing import Any
 
 from services.core.bus import Bus
 from services.core.config import ConfigError, parse_overrides, read_yaml
-from services.core.topics import Topic
+from services.core.topics import TRAIN_PROGRESS, TRAIN_REQUEST
 from services.pb import trainer_pb2
 from services.pb.common_pb2 import Header
 from services.trainer.config import TrainConfig, TrainerServiceConfig, deep_merge, train_config_from_dict
@@ -36,8 +36,6 @@ from services.trainer.config import TrainConfig, TrainerServiceConfig, deep_merg
 log = logging.getLogger("trainer")
 
 # Our part of the bus graph (keys relative to the namespace, like services.core.topics).
-TRAIN_REQUEST = "trainer/request"  # queryable: TrainRequest -> TrainReply
-TRAIN_PROGRESS = Topic("trainer/progress", trainer_pb2.TrainProgress)
 SERVICE_NAME = "trainer"
 
 S = trainer_pb2

@@ -18,7 +18,8 @@ import torch
 from services.pb import trainer_pb2 as S
 from services.trainer.checkpoint import load_policy
 from services.trainer.config import TrainerServiceConfig
-from services.trainer.service import SERVICE_NAME, TRAIN_PROGRESS, TRAIN_REQUEST, TrainerService
+from services.core.topics import TRAIN_PROGRESS, TRAIN_REQUEST
+from services.trainer.service import SERVICE_NAME, TrainerService
 
 from test_train import build_sim_dataset  # noqa: E402  (same directory)
 
