@@ -75,7 +75,7 @@ class LocalStack:
         cmd = [sys.executable, "-m", MODULES[name]]
         if self.config:
             cmd += ["--config", self.config]
-        for item in [f"bus.mode=client", f"bus.connect=[{self.endpoint}]", *self.overrides.get(name, [])]:
+        for item in ["bus.mode=client", f"bus.connect=[{self.endpoint}]", *self.overrides.get(name, [])]:
             cmd += ["--set", item]
         log_path = self.log_dir / f"{name}.log"
         env = dict(os.environ, MUJOCO_GL=os.environ.get("MUJOCO_GL", "egl"), PYTHONUNBUFFERED="1")

@@ -41,7 +41,6 @@ import numpy as np
 from services.policy.model.normalizer import Normalizer, NormalizerStats
 from services.trainer.action_spaces import ACTION_DIM, STATE_NAMES, check_space, resolve_state_frame
 from services.trainer.episodes import (
-    CameraCalib,
     EpisodeError,
     align,
     load_raw_episode,

@@ -11,7 +11,6 @@ import numpy as np
 import pytest
 
 from services.core import topics
-from services.core.bus import Bus
 from services.core.rig import Camera, load_rig
 from services.core.tensors import decode_jpeg
 from services.pb.common_pb2 import Header
