@@ -174,14 +174,3 @@ def add_dataset_commands(subparsers: argparse._SubParsersAction) -> None:
     i.add_argument("path", help="dataset directory")
     i.add_argument("--json", action="store_true", help="print the summary as one JSON line")
     i.set_defaults(func=_info)
-
-
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="viewscale")
-    add_dataset_commands(parser.add_subparsers(dest="command", required=True))
-    args = parser.parse_args(argv)
-    return int(args.func(args) or 0)
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())
