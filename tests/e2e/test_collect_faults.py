@@ -40,6 +40,14 @@ def recorder(bus: Bus, command, **kw) -> EpisodeReply:
     return reply
 
 
+def start_episode(bus: Bus, episode_id: str, seed: int) -> None:
+    """Reset the sim, open the recording, start ticking: what a session does per episode."""
+    sim(bus, SimCommand.SIM_COMMAND_RESET, task="lift", seed=seed, episode_id=episode_id)
+    recorder(bus, EpisodeCommand.EPISODE_COMMAND_START, episode_id=episode_id, task="lift", seed=seed,
+             rig="three15", control_hz=20)
+    sim(bus, SimCommand.SIM_COMMAND_RUN)
+
+
 def wait_for_tick(bus: Bus, episode_id: str, tick: int, until_success: bool = False) -> None:
     cv = threading.Condition()
     seen = {"tick": -1, "success": False}
@@ -59,10 +67,7 @@ def wait_for_tick(bus: Bus, episode_id: str, tick: int, until_success: bool = Fa
 def test_garbage_on_every_topic_is_counted_and_loses_no_good_data(stack):
     with Bus(stack.bus_config()) as bus:
         bus.wait_alive(["sim", "teleop", "recorder"], timeout=60)
-        sim(bus, SimCommand.SIM_COMMAND_RESET, task="lift", seed=3, episode_id="garbage")
-        recorder(bus, EpisodeCommand.EPISODE_COMMAND_START, episode_id="garbage", task="lift", seed=3,
-                 rig="three15", control_hz=20)
-        sim(bus, SimCommand.SIM_COMMAND_RUN)
+        start_episode(bus, "garbage", seed=3)
         wait_for_tick(bus, "garbage", 3)
         raw = {t.key: bus.session.declare_publisher(bus.key(t.key)) for t in topics.session_topics(RIG)}
         bad_jpeg = CompressedImage(frame_id="F", format="jpeg", data=b"\xff\xd8 not really a jpeg").SerializeToString()
@@ -92,10 +97,7 @@ def test_garbage_on_every_topic_is_counted_and_loses_no_good_data(stack):
 def test_sim_killed_mid_episode_flags_it_and_the_recorder_carries_on(stack):
     with Bus(stack.bus_config()) as bus:
         bus.wait_alive(["sim", "teleop", "recorder"], timeout=60)
-        sim(bus, SimCommand.SIM_COMMAND_RESET, task="lift", seed=5, episode_id="crash")
-        recorder(bus, EpisodeCommand.EPISODE_COMMAND_START, episode_id="crash", task="lift", seed=5,
-                 rig="three15", control_hz=20)
-        sim(bus, SimCommand.SIM_COMMAND_RUN)
+        start_episode(bus, "crash", seed=5)
         wait_for_tick(bus, "crash", 5)
         stack.restart("sim")  # SIGKILL, then a fresh sim process
         bus.wait_alive(["sim"], timeout=60)
@@ -107,10 +109,7 @@ def test_sim_killed_mid_episode_flags_it_and_the_recorder_carries_on(stack):
         assert meta.flags, "a sim restart mid-episode must flag the episode"
         assert any("sim" in f for f in meta.flags), list(meta.flags)
         # The recorder is still fully usable for the next episode.
-        sim(bus, SimCommand.SIM_COMMAND_RESET, task="lift", seed=6, episode_id="after")
-        recorder(bus, EpisodeCommand.EPISODE_COMMAND_START, episode_id="after", task="lift", seed=6,
-                 rig="three15", control_hz=20)
-        sim(bus, SimCommand.SIM_COMMAND_RUN)
+        start_episode(bus, "after", seed=6)
         wait_for_tick(bus, "after", 3, until_success=True)
         ticks = sim(bus, SimCommand.SIM_COMMAND_PAUSE).ticks
         after = recorder(bus, EpisodeCommand.EPISODE_COMMAND_STOP, episode_id="after", success=True, ticks=ticks).meta
