@@ -158,7 +158,7 @@ class SimService:
             if not was_running:
                 rate.reset()
                 was_running = True
-            self.loop.act(self.loop.observe())
+            self.loop.step()
             if self.cfg.realtime:
                 rate.sleep()
         log.info("sim stopped at tick %d (%d stale ticks, %d rejected commands)",

@@ -77,13 +77,13 @@ class ControlLoop:
         observers: list[Observer] | None = None,
         min_command_wait: float = 0.25,
     ):
-        self.bus = bus
         self.driver = driver
         self.control_hz = control_hz
         self.realtime = realtime
         self.command_timeout_s = command_timeout_s
         self.command_wait_fraction = command_wait_fraction
         self.min_command_wait = min_command_wait
+        self._tick_start = 0.0  # monotonic time the tick's observation began
         self._published_at = 0.0  # monotonic time the tick's state went out
         self.observers = list(observers or [])
         self.tick = 0
@@ -135,9 +135,14 @@ class ControlLoop:
         with self._cv:
             self._latest = None
 
-    def observe(self) -> float:
-        """Publish tick's observation; returns its monotonic start time."""
-        t0 = time.monotonic()
+    def step(self) -> None:
+        """One whole tick: observe, then act."""
+        self.observe()
+        self.act()
+
+    def observe(self) -> None:
+        """Publish the tick's observation."""
+        self._tick_start = time.monotonic()
         stamp = now_ns()
         snapshot = self.driver.read()
         for observer in self.observers:
@@ -145,13 +150,13 @@ class ControlLoop:
         self._seq += 1
         self._state_pub.put(state_msg(snapshot, self.tick, stamp, self._seq, self.episode_id))
         self._published_at = time.monotonic()
-        return t0
 
-    def act(self, t0: float) -> None:
+    def act(self) -> None:
         """Wait for the tick's command, execute it (or hold), publish what ran."""
         if self.realtime:
             period = 1.0 / self.control_hz
-            deadline = max(t0 + self.command_wait_fraction * period, self._published_at + self.min_command_wait * period)
+            deadline = max(self._tick_start + self.command_wait_fraction * period,
+                           self._published_at + self.min_command_wait * period)
         else:
             deadline = self._published_at + self.command_timeout_s
         delta = self._wait_command(self.tick, deadline)
@@ -175,7 +180,7 @@ class ControlLoop:
         """Tick from now until ``stop`` (the standalone robot service's loop)."""
         rate = Rate(self.control_hz)
         while not stop.is_set():
-            self.act(self.observe())
+            self.step()
             if self.realtime:
                 rate.sleep()
         log.info("control loop stopped at tick %d (%d stale ticks)", self.tick, self.stale_ticks)
