@@ -87,11 +87,10 @@ class LocalStack:
         self.children.append(child)
         return child
 
-    def restart(self, name: str, kill: bool = True) -> None:
+    def restart(self, name: str) -> None:
         """Kill (SIGKILL) a service and start it again; returns once it is ready."""
         old = next(c for c in self.children if c.name == name)
-        if kill:
-            old.proc.kill()
+        old.proc.kill()
         old.proc.wait()
         old.proc.stdout.close()
         self.children.remove(old)

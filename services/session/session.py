@@ -113,10 +113,16 @@ class Session:
         return reply
 
     # -- one episode --------------------------------------------------------------------
+    def _watch(self, episode_id: str) -> None:
+        """Follow the task state of ``episode_id`` from its first tick."""
+        with self._cv:
+            self._episode, self._tick, self._success_since = episode_id, -1, None
+
     def _wait_done(self, limit: int) -> None:
         """Until success held for settle_ticks, the tick limit, or a lost service."""
         # Generous wall-clock bound: the loop may run slower than real time on a busy machine.
-        deadline = time.monotonic() + 30.0 + 5.0 * limit / self.cfg.control_hz
+        budget = 30.0 + 5.0 * limit / self.cfg.control_hz
+        deadline = time.monotonic() + budget
         with self._cv:
             while True:
                 if self._lost:
@@ -127,15 +133,13 @@ class Session:
                     return
                 remaining = deadline - time.monotonic()
                 if remaining <= 0:
-                    raise SessionError(f"episode made no progress: tick {self._tick} of {limit} "
-                                       f"after {30.0 + 5.0 * limit / self.cfg.control_hz:.0f}s")
+                    raise SessionError(f"episode made no progress: tick {self._tick} of {limit} after {budget:.0f}s")
                 self._cv.wait(min(remaining, 0.5))
 
     def run_episode(self, seed: int) -> Attempt:
         stamp = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%S")
         episode_id = f"{self.cfg.task}-{self.cfg.rig}-s{seed:05d}-{stamp}"
-        with self._cv:
-            self._episode, self._tick, self._success_since = episode_id, -1, None
+        self._watch(episode_id)
         t0 = time.monotonic()
         self._sim(SimCommand.SIM_COMMAND_RESET, task=self.cfg.task, seed=seed, episode_id=episode_id)
         self._recorder(EpisodeCommand.EPISODE_COMMAND_START, episode_id=episode_id, task=self.cfg.task,
@@ -166,8 +170,7 @@ class Session:
     def warm_up(self) -> None:
         """Run a few unrecorded ticks so the first episode does not pay for cold starts
         (first renders and JPEG encodes, zenoh routes, the expert's first call)."""
-        with self._cv:
-            self._episode, self._tick, self._success_since = "warmup", -1, None
+        self._watch("warmup")
         self._sim(SimCommand.SIM_COMMAND_RESET, task=self.cfg.task, seed=self.cfg.seed, episode_id="warmup")
         self._sim(SimCommand.SIM_COMMAND_RUN)
         try:
