@@ -18,6 +18,7 @@ import math
 from abc import ABC, abstractmethod
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from sim.tasks import (
     CAN_HALF_HEIGHT,
@@ -28,7 +29,7 @@ from sim.tasks import (
     TASKS,
     quat_yaw,
 )
-from sim.world import ObjectPose, RobotSnapshot
+from sim.world import ObjectPose, RobotSnapshot, clip_norm
 
 Action = tuple[np.ndarray, np.ndarray, float]
 
@@ -40,30 +41,13 @@ R_DOWN = np.diag([1.0, -1.0, -1.0])  # EEF pointing down at yaw 0 (sim.scene.R_D
 
 
 def quat_to_mat(q: np.ndarray) -> np.ndarray:
-    w, x, y, z = q
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ]
-    )
+    """(w, x, y, z) quaternion -> rotation matrix."""
+    return Rotation.from_quat(np.asarray(q)[[1, 2, 3, 0]]).as_matrix()
 
 
 def rot_log(R: np.ndarray) -> np.ndarray:
     """Axis-angle vector of a rotation matrix."""
-    cos = max(-1.0, min(1.0, (np.trace(R) - 1.0) / 2.0))
-    angle = math.acos(cos)
-    v = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    if angle < 1e-9:
-        return 0.5 * v
-    if math.pi - angle < 1e-6:  # half turn: the axis from the symmetric part
-        axis = np.sqrt(np.maximum((np.diag(R) + 1.0) / 2.0, 0.0))
-        k = int(np.argmax(axis))
-        axis = np.sign(R[k] + R[:, k]) * axis
-        axis[k] = abs(axis[k])
-        return angle * axis / np.linalg.norm(axis)
-    return angle * v / (2.0 * math.sin(angle))
+    return Rotation.from_matrix(R).as_rotvec()
 
 
 def rot_z(yaw: float) -> np.ndarray:
@@ -79,11 +63,6 @@ def eef_yaw(robot: RobotSnapshot) -> float:
 def nearest_yaw(target: float, current: float, period: float) -> float:
     """The angle equal to ``target`` modulo ``period`` closest to ``current``."""
     return current + (target - current + period / 2) % period - period / 2
-
-
-def _clip_norm(v: np.ndarray, limit: float) -> np.ndarray:
-    n = float(np.linalg.norm(v))
-    return v * (limit / n) if n > limit else v
 
 
 class Expert(ABC):
@@ -124,8 +103,8 @@ class _Scripted(Expert):
         yaw = eef_yaw(robot) if self.yaw is None else self.yaw
         err_p = np.asarray(goal, dtype=np.float64) - robot.eef_pos
         err_r = rot_log(rot_z(yaw) @ R_DOWN @ quat_to_mat(robot.eef_quat_wxyz).T)
-        dp = _clip_norm(GAIN * err_p, speed)
-        drot = _clip_norm(GAIN * err_r, MAX_ROT)
+        dp = clip_norm(GAIN * err_p, speed)
+        drot = clip_norm(GAIN * err_r, MAX_ROT)
         return (dp, drot, float(gripper)), float(np.linalg.norm(err_p)), float(np.linalg.norm(err_r))
 
     def act(self, robot: RobotSnapshot, objects: dict[str, ObjectPose]) -> Action:

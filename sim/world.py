@@ -105,7 +105,8 @@ def _rotvec_to_mat(v: np.ndarray) -> np.ndarray:
     return mat.reshape(3, 3)
 
 
-def _clip_norm(v: np.ndarray, limit: float) -> np.ndarray:
+def clip_norm(v: np.ndarray, limit: float) -> np.ndarray:
+    """``v`` scaled down to length ``limit`` if it is longer."""
     n = float(np.linalg.norm(v))
     return v * (limit / n) if n > limit else v
 
@@ -202,19 +203,19 @@ class SimWorld:
         ``dp`` and ``drot`` are 3 finite numbers each, ``gripper`` one (clipped to [0, 1]);
         anything else is a ValueError. See the module docstring for the limits applied.
         """
-        dp = _clip_norm(_vector("dp", dp, 3), self._max_dp)
-        drot = _clip_norm(_vector("drot", drot, 3), self._max_drot)
+        dp = clip_norm(_vector("dp", dp, 3), self._max_dp)
+        drot = clip_norm(_vector("drot", drot, 3), self._max_drot)
         g = min(max(_scalar("gripper", gripper), 0.0), 1.0)
 
         d = self.data
         eef_pos = d.site_xpos[self._site].copy()
         eef_R = d.site_xmat[self._site].reshape(3, 3).copy()
         pos = np.clip(self._target_pos + dp, WORKSPACE_LO, WORKSPACE_HI)
-        self._target_pos = eef_pos + _clip_norm(pos - eef_pos, MAX_LEAD)
+        self._target_pos = eef_pos + clip_norm(pos - eef_pos, MAX_LEAD)
         R = _rotvec_to_mat(drot) @ self._target_R
         lead = rotation_error(R, eef_R)
         if np.linalg.norm(lead) > MAX_LEAD_ROT:
-            R = _rotvec_to_mat(_clip_norm(lead, MAX_LEAD_ROT)) @ eef_R
+            R = _rotvec_to_mat(clip_norm(lead, MAX_LEAD_ROT)) @ eef_R
         quat = np.empty(4)
         mujoco.mju_mat2Quat(quat, R.reshape(-1))  # back through a unit quaternion: no drift from
         mat = np.empty(9)  # orthonormality over thousands of compositions
