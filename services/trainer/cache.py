@@ -6,7 +6,7 @@ Layout of a dataset directory::
                          presence marks the dataset complete; a build removes it first.
     meta.json            action space, state frame, views, To/Tp/Ta, image size, per-view
                          calibration (K at the cached size, R_ext, position), source episodes
-    normalizer.json      services.policy.model.normalizer.Normalizer
+    normalizer.json      services.core.normalizer.Normalizer
     summary.json         counts, drops by reason, action statistics
     contact_sheet.png    first/middle/last frame of each view of a few episodes, with the
                          trajectory drawn from the pseudo-demo's own actions
@@ -38,8 +38,8 @@ from typing import Any, Callable, Iterator
 import cv2
 import numpy as np
 
-from services.policy.model.normalizer import Normalizer, NormalizerStats
-from services.trainer.action_spaces import ACTION_DIM, STATE_NAMES, check_space, resolve_state_frame
+from services.core.normalizer import Normalizer, NormalizerStats
+from services.core.action_spaces import ACTION_DIM, STATE_NAMES, check_space, resolve_state_frame
 from services.trainer.episodes import (
     EpisodeError,
     align,

@@ -49,7 +49,7 @@ class LoadedPolicy:
 
     @property
     def normalizer(self):
-        from services.policy.model.normalizer import Normalizer
+        from services.core.normalizer import Normalizer
 
         return Normalizer.from_dict(self.info["normalizer"])
 

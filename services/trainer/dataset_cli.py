@@ -16,7 +16,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from services.trainer.action_spaces import SPACES, STATE_FRAMES
+from services.core.action_spaces import SPACES, STATE_FRAMES
 from services.trainer.cache import CONTACT_SHEET, BuildParams, DatasetError, DatasetStore, build_dataset
 from services.trainer.episodes import EpisodeError
 

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from services.trainer.action_spaces import state_vector, to_space
+from services.core.action_spaces import state_vector, to_space
 from services.trainer.episodes import Aligned, CameraCalib, EpisodeError, segments
 
 

@@ -15,8 +15,6 @@ import json
 import sys
 from pathlib import Path
 
-from services.policy.model.presets import PRESETS
-
 
 def _train(args: argparse.Namespace) -> int:
     from services.core.config import ConfigError
@@ -79,7 +77,7 @@ def add_train_command(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--data", help="dataset directory (default data/ds)")
     p.add_argument("--out", help="run directory; an existing run is resumed (default runs/default)")
-    p.add_argument("--preset", choices=sorted(PRESETS), help="hyper-parameter preset (default tiny)")
+    p.add_argument("--preset", help="hyper-parameter preset: tiny (default), paper, ...; an unknown name lists them")
     p.add_argument("--steps", type=int, help="total optimisation steps")
     p.add_argument("--batch-size", type=int, help="samples per step (per process)")
     p.add_argument("--device", help="auto, cpu, cuda or cuda:N (default auto)")

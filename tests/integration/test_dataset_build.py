@@ -15,7 +15,7 @@ from scipy.spatial.transform import Rotation
 
 from services.cli import main as viewscale
 from services.core.rig import load_rig
-from services.trainer.action_spaces import from_space, rot6d_to_matrix
+from services.core.action_spaces import from_space, rot6d_to_matrix
 from services.trainer.cache import BuildParams, DatasetError, DatasetStore, build_dataset
 from services.trainer.dataset import load_dataset, split_episodes
 from services.trainer.episodes import CameraCalib, EpisodeError

@@ -13,7 +13,7 @@ import torch
 from services.cli import main as viewscale
 from services.core import topics
 from services.recorder.reader import read_episode
-from services.trainer.action_spaces import from_space, to_space
+from services.core.action_spaces import from_space, to_space
 from services.trainer.dataset import load_dataset
 
 VIEWS = ["F", "FL", "FR", "FU", "FD"]

@@ -10,8 +10,8 @@ from hypothesis.extra.numpy import arrays
 from scipy.spatial.transform import Rotation
 
 from services.core.rig import Camera, load_rig
-from services.policy.model.normalizer import Normalizer
-from services.trainer.action_spaces import (
+from services.core.normalizer import Normalizer
+from services.core.action_spaces import (
     eef_chunk_to_base,
     from_space,
     resolve_state_frame,

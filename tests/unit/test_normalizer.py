@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 from scipy.spatial.transform import Rotation
 
-from services.policy.model.normalizer import Normalizer, NormalizerStats
+from services.core.normalizer import Normalizer, NormalizerStats
 
 FAST = settings(max_examples=60, deadline=None)
 acts = arrays(np.float64, (30, 7), elements=st.floats(-2.0, 2.0, allow_nan=False)).map(

@@ -8,33 +8,33 @@ Public API::
     eps = policy.denoise_step_eps(x_k, k, cond)                           # one denoising step
     chunk = sample(policy, obs, state)                                    # the whole DDIM loop
 
-Names are imported lazily, so ``services.policy.model.normalizer`` (numpy only) can be used
-without importing torch.
+The normaliser that maps data into the model's units is numpy only and lives in
+``services.core.normalizer``.
 """
 
-from __future__ import annotations
+from services.policy.model.diffusion import (
+    action_steps,
+    compute_loss,
+    denoise_step,
+    make_inference_scheduler,
+    make_train_scheduler,
+    sample,
+)
+from services.policy.model.encoder import EncoderConfig
+from services.policy.model.policy import DiffusionPolicy, ModelConfig, NoiseConfig
+from services.policy.model.presets import PRESETS, preset
 
-import importlib
-
-_EXPORTS = {
-    "DiffusionPolicy": "policy",
-    "ModelConfig": "policy",
-    "NoiseConfig": "policy",
-    "EncoderConfig": "encoder",
-    "PRESETS": "presets",
-    "preset": "presets",
-    "action_steps": "diffusion",
-    "compute_loss": "diffusion",
-    "denoise_step": "diffusion",
-    "make_inference_scheduler": "diffusion",
-    "make_train_scheduler": "diffusion",
-    "sample": "diffusion",
-}
-
-__all__ = sorted(_EXPORTS)
-
-
-def __getattr__(name: str):
-    if name not in _EXPORTS:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    return getattr(importlib.import_module(f"{__name__}.{_EXPORTS[name]}"), name)
+__all__ = [
+    "PRESETS",
+    "DiffusionPolicy",
+    "EncoderConfig",
+    "ModelConfig",
+    "NoiseConfig",
+    "action_steps",
+    "compute_loss",
+    "denoise_step",
+    "make_inference_scheduler",
+    "make_train_scheduler",
+    "preset",
+    "sample",
+]
