@@ -29,7 +29,8 @@ from sim.tasks import (
     TASKS,
     quat_yaw,
 )
-from sim.world import ObjectPose, RobotSnapshot, clip_norm
+from services.core.robot_types import ObjectPose, RobotSnapshot
+from sim.world import clip_norm
 
 Action = tuple[np.ndarray, np.ndarray, float]
 

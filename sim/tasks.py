@@ -17,12 +17,11 @@ from __future__ import annotations
 
 import math
 from abc import ABC, abstractmethod
-from typing import TYPE_CHECKING, Mapping
+from typing import Mapping
 
 import numpy as np
 
-if TYPE_CHECKING:
-    from sim.world import ObjectPose
+from services.core.robot_types import ObjectPose
 
 TASKS = ("lift", "can", "square")
 
@@ -75,7 +74,7 @@ class Task(ABC):
         """Start pose (pos, quat_wxyz) of each free body; nominal poses when ``rng`` is None."""
 
     @abstractmethod
-    def success(self, objects: Mapping[str, "ObjectPose"]) -> bool: ...
+    def success(self, objects: Mapping[str, ObjectPose]) -> bool: ...
 
 
 def _uniform(rng: np.random.Generator | None, lo: float, hi: float) -> float:

@@ -27,12 +27,12 @@ os.environ.setdefault("MUJOCO_GL", "egl")  # before mujoco is imported: headless
 
 import math  # noqa: E402
 import numbers  # noqa: E402
-from dataclasses import dataclass  # noqa: E402
 
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
 from services.core.rig import Rig  # noqa: E402
+from services.core.robot_types import ObjectPose, RobotSnapshot  # noqa: E402
 from sim.ik import SiteIk, rotation_error  # noqa: E402
 from sim.scene import (  # noqa: E402
     ARM_JOINTS,
@@ -46,7 +46,7 @@ from sim.scene import (  # noqa: E402
 )
 from sim.tasks import TASKS, make_task  # noqa: E402
 
-__all__ = ["TASKS", "ObjectPose", "RobotSnapshot", "SimWorld"]
+__all__ = ["TASKS", "SimWorld"]
 
 MAX_SPEED = 0.6  # m/s: per-tick translation limit = MAX_SPEED / control_hz
 MAX_ANGULAR_SPEED = 3.0  # rad/s: per-tick rotation limit = MAX_ANGULAR_SPEED / control_hz
@@ -60,21 +60,6 @@ SETTLE_STEPS = 50  # physics steps after placing the objects, before the first t
 # Quaternion sign: the hemisphere of the pointing-down rotation (w = 0 there, so "w >= 0" would
 # flip sign on noise around home); continuous everywhere the gripper does not point up.
 _QUAT_DOWN = np.array([0.0, 1.0, 0.0, 0.0])
-
-
-@dataclass(frozen=True)
-class RobotSnapshot:
-    eef_pos: np.ndarray  # (3,) base frame
-    eef_quat_wxyz: np.ndarray  # (4,) base frame, sign: dot with R_DOWN's (0, 1, 0, 0) >= 0
-    joint_pos: np.ndarray  # (6,) arm joints j1..j6 (rad); the fingers are summarised in `gripper`
-    joint_vel: np.ndarray  # (6,) rad/s
-    gripper: float  # closure in [0, 1], 0 open, 1 closed (measured from the finger positions)
-
-
-@dataclass(frozen=True)
-class ObjectPose:
-    pos: np.ndarray  # (3,) world
-    quat_wxyz: np.ndarray  # (4,)
 
 
 def _vector(name: str, value, n: int) -> np.ndarray:

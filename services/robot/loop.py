@@ -22,47 +22,17 @@ import time
 from collections import Counter
 from typing import Callable
 
-import numpy as np
-
 from services.core import topics
 from services.core.bus import Bus, Received
 from services.core.clock import Rate, now_ns
+from services.core.robot_types import EefDelta, action_from_msg, action_msg, state_msg
 from services.pb.common_pb2 import Header
-from services.pb.control_pb2 import AppliedAction, EefAction, EefCommand
-from services.pb.sensors_pb2 import RobotState
-from services.robot.backends.base import EefDelta, RobotDriver
+from services.pb.control_pb2 import AppliedAction, EefCommand
+from services.robot.backends.base import RobotDriver
 
 log = logging.getLogger(__name__)
 
 Observer = Callable[[int, int], None]  # (tick, capture stamp_ns)
-
-
-def state_msg(snapshot, tick: int, stamp_ns: int, seq: int, episode_id: str) -> RobotState:
-    return RobotState(
-        header=Header(stamp_ns=stamp_ns, seq=seq, frame_id=topics.WORLD_FRAME),
-        tick=tick,
-        eef_pos=[float(v) for v in snapshot.eef_pos],
-        eef_quat_wxyz=[float(v) for v in snapshot.eef_quat_wxyz],
-        joint_pos=[float(v) for v in snapshot.joint_pos],
-        joint_vel=[float(v) for v in snapshot.joint_vel],
-        gripper=float(snapshot.gripper),
-        episode_id=episode_id,
-    )
-
-
-def action_from_msg(action: EefAction) -> EefDelta:
-    """Validate and convert a wire action; raises ValueError for the wrong shape or NaN."""
-    dp = np.asarray(action.dp, dtype=np.float64)
-    drot = np.asarray(action.drot, dtype=np.float64)
-    if dp.shape != (3,) or drot.shape != (3,):
-        raise ValueError(f"action needs dp and drot of 3 values, got {dp.shape} and {drot.shape}")
-    if not (np.all(np.isfinite(dp)) and np.all(np.isfinite(drot)) and np.isfinite(action.gripper)):
-        raise ValueError("action has non-finite values")
-    return EefDelta(dp, drot, float(np.clip(action.gripper, 0.0, 1.0)))
-
-
-def action_msg(delta: EefDelta) -> EefAction:
-    return EefAction(dp=[float(v) for v in delta.dp], drot=[float(v) for v in delta.drot], gripper=delta.gripper)
 
 
 class ControlLoop:

@@ -15,11 +15,11 @@ from collections import Counter, OrderedDict
 from services.core import topics
 from services.core.bus import Bus, Received
 from services.core.clock import now_ns
+from services.core.robot_types import action_msg
 from services.core.runtime import serve
 from services.pb.common_pb2 import Header
 from services.pb.control_pb2 import EefCommand
 from services.pb.sensors_pb2 import RobotState, TaskState
-from services.robot.loop import action_msg
 from services.teleop.backends.base import TeleopSource
 from services.teleop.config import TeleopConfig
 

@@ -11,7 +11,8 @@ import pytest
 
 from services.core.rig import load_rig
 from sim.experts import make_expert, nearest_yaw, quat_to_mat, rot_log, rot_z
-from sim.world import ObjectPose, RobotSnapshot, SimWorld
+from services.core.robot_types import ObjectPose, RobotSnapshot
+from sim.world import SimWorld
 
 
 @pytest.mark.parametrize("task", ["lift", "can", "square"])

@@ -4,22 +4,8 @@ from __future__ import annotations
 
 import importlib
 from abc import ABC, abstractmethod
-from dataclasses import dataclass
 
-import numpy as np
-
-
-@dataclass(frozen=True)
-class EefDelta:
-    """One control tick's end-effector delta in the base frame (see proto EefAction)."""
-
-    dp: np.ndarray  # (3,) metres
-    drot: np.ndarray  # (3,) axis-angle, radians; R_next = Rot(drot) @ R
-    gripper: float  # target closure in [0, 1]
-
-    @classmethod
-    def hold(cls, gripper: float) -> "EefDelta":
-        return cls(np.zeros(3), np.zeros(3), float(gripper))
+from services.core.robot_types import EefDelta
 
 
 class RobotDriver(ABC):

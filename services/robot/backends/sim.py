@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from services.robot.backends.base import EefDelta, RobotDriver
+from services.core.robot_types import EefDelta
+from services.robot.backends.base import RobotDriver
 
 
 class SimRobotDriver(RobotDriver):

@@ -5,7 +5,7 @@ from __future__ import annotations
 from abc import ABC, abstractmethod
 
 from services.pb.sensors_pb2 import RobotState, TaskState
-from services.robot.backends.base import EefDelta
+from services.core.robot_types import EefDelta
 
 
 class TeleopSource(ABC):

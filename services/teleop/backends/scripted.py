@@ -5,27 +5,9 @@ from __future__ import annotations
 import numpy as np
 
 from services.pb.sensors_pb2 import RobotState, TaskState
-from services.robot.backends.base import EefDelta
+from services.core.robot_types import EefDelta, objects_from_msg, snapshot_from_msg
 from services.teleop.backends.base import TeleopSource
 from sim.experts import make_expert
-from sim.world import ObjectPose, RobotSnapshot
-
-
-def snapshot_from_msg(state: RobotState) -> RobotSnapshot:
-    return RobotSnapshot(
-        eef_pos=np.asarray(state.eef_pos, dtype=np.float64),
-        eef_quat_wxyz=np.asarray(state.eef_quat_wxyz, dtype=np.float64),
-        joint_pos=np.asarray(state.joint_pos, dtype=np.float64),
-        joint_vel=np.asarray(state.joint_vel, dtype=np.float64),
-        gripper=float(state.gripper),
-    )
-
-
-def objects_from_msg(task: TaskState) -> dict[str, ObjectPose]:
-    return {
-        o.name: ObjectPose(pos=np.asarray(o.pos, dtype=np.float64), quat_wxyz=np.asarray(o.quat_wxyz, dtype=np.float64))
-        for o in task.objects
-    }
 
 
 class ScriptedSource(TeleopSource):
