@@ -33,7 +33,7 @@ import numpy as np  # noqa: E402
 from bench.common import report  # noqa: E402
 from services.core import topics  # noqa: E402
 from services.recorder.reader import read_episode  # noqa: E402
-from services.trainer.cache import BuildParams, build_dataset, find_episodes  # noqa: E402
+from services.dataset.build import BuildParams, build_dataset, find_episodes  # noqa: E402
 
 
 def collect_episodes(out: Path, episodes: int, size: int, task: str, rig: str) -> None:
@@ -64,7 +64,7 @@ def decode_only(paths: list[Path], views: list[str], repeats: int) -> tuple[int,
 def loader_rate(ds_dir: Path, batch: int, workers: int, batches: int) -> tuple[float, int]:
     import torch
 
-    from services.trainer.dataset import load_dataset
+    from services.trainer.data import load_dataset
 
     ds = load_dataset(ds_dir, split="all")
     loader = torch.utils.data.DataLoader(ds, batch_size=batch, shuffle=True, num_workers=workers,

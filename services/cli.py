@@ -144,8 +144,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--listen", action="append", help="endpoint, repeatable (default tcp/0.0.0.0:7447)")
     p.set_defaults(func=_router)
 
-    _add_optional(sub, "services.trainer.dataset_cli", "add_dataset_commands")
-    _add_optional(sub, "services.trainer.train_cli", "add_train_command")
+    _add_optional(sub, "services.dataset.cli", "add_dataset_commands")
+    _add_optional(sub, "services.trainer.cli", "add_train_command")
     return parser
 
 

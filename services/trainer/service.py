@@ -174,7 +174,7 @@ class TrainerService:
 
     # -- the worker -----------------------------------------------------------------------------
     def _work(self) -> None:
-        from services.trainer.checkpoint import CheckpointError
+        from services.policy.checkpoint import CheckpointError
         from services.trainer.train import TrainingError, train
 
         while not self._stop.is_set():

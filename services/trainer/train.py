@@ -30,7 +30,7 @@ from torch.utils.data import DataLoader, Dataset, Sampler
 from services.core.config import ConfigError
 from services.policy.model.diffusion import compute_loss, make_train_scheduler
 from services.policy.model.policy import DiffusionPolicy, ModelConfig
-from services.trainer import checkpoint as ckpt
+from services.policy import checkpoint as ckpt
 from services.trainer.config import TrainConfig, explicitly_set
 
 log = logging.getLogger("trainer")
@@ -110,8 +110,8 @@ def load_train_data(cfg: TrainConfig) -> TrainData:
     """Open the dataset directory ``cfg.data`` (built by ``viewscale dataset build``): training and
     held-out episodes of the chosen views, with To/Tp/Ta from the model config where the user set
     them (windows are cut when loading) and from the dataset otherwise."""
-    from services.trainer.cache import DatasetError
-    from services.trainer.dataset import PseudoDemoDataset
+    from services.dataset.build import DatasetError
+    from services.trainer.data import PseudoDemoDataset
 
     horizons = {
         key: getattr(cfg.model, field)

@@ -16,9 +16,9 @@ from scipy.spatial.transform import Rotation
 from services.cli import main as viewscale
 from services.core.rig import load_rig
 from services.core.action_spaces import from_space, rot6d_to_matrix
-from services.trainer.cache import BuildParams, DatasetError, DatasetStore, build_dataset
-from services.trainer.dataset import load_dataset, split_episodes
-from services.trainer.episodes import CameraCalib, EpisodeError
+from services.dataset.build import BuildParams, DatasetError, DatasetStore, build_dataset
+from services.trainer.data import load_dataset, split_episodes
+from services.dataset.episodes import CameraCalib, EpisodeError
 
 VIEWS = ("F", "FL", "FR")
 N = 40
@@ -330,7 +330,7 @@ def test_cli_build_and_info(raw_dir, tmp_path, capsys):
 def test_contact_sheet_action_path_retraces_the_state_path(raw_dir, tmp_path, space, state_frame):
     """The generated episodes move exactly by their actions, so the path the contact sheet draws from
     a pseudo-demo's actions (in their own frame) must land on the EEF states it draws in white."""
-    from services.trainer.contact_sheet import trajectories
+    from services.dataset.contact_sheet import trajectories
 
     out = tmp_path / "ds"
     build_dataset(raw_dir, out, BuildParams(views=("FL",), space=space, state_frame=state_frame,

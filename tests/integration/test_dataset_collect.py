@@ -14,7 +14,7 @@ from services.cli import main as viewscale
 from services.core import topics
 from services.recorder.reader import read_episode
 from services.core.action_spaces import from_space, to_space
-from services.trainer.dataset import load_dataset
+from services.trainer.data import load_dataset
 
 VIEWS = ["F", "FL", "FR", "FU", "FD"]
 

@@ -19,7 +19,7 @@ from safetensors.torch import load_file
 from services.cli import main as viewscale
 from services.policy.model import action_steps, sample
 from services.core.normalizer import Normalizer
-from services.trainer.checkpoint import CheckpointError, latest_checkpoint, load_policy
+from services.policy.checkpoint import CheckpointError, latest_checkpoint, load_policy
 from services.trainer.config import train_config_from_dict
 from services.trainer.train import StepBatchSampler, TrainingError, load_train_data, train
 

@@ -11,7 +11,7 @@ from safetensors.torch import load_file, save_file
 
 from services.core.config import ConfigError
 from services.policy.model.policy import ModelConfig
-from services.trainer.checkpoint import config_diff, optimizer_from_tensors, optimizer_to_tensors
+from services.policy.checkpoint import config_diff, optimizer_from_tensors, optimizer_to_tensors
 from services.trainer.config import EmaConfig, explicitly_set, load_train_config, train_config_from_dict
 from services.trainer.train import EMA, StepBatchSampler, lr_at, resolve_model_config
 

@@ -16,7 +16,7 @@ import pytest
 import torch
 
 from services.pb import trainer_pb2 as S
-from services.trainer.checkpoint import load_policy
+from services.policy.checkpoint import load_policy
 from services.trainer.config import TrainerServiceConfig
 from services.core.topics import TRAIN_PROGRESS, TRAIN_REQUEST
 from services.trainer.service import SERVICE_NAME, TrainerService

@@ -7,8 +7,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from services.trainer.episodes import EpisodeError, RawEpisode, align, default_max_frame_age_ns, segments
-from services.trainer.pseudo_demos import chunk_rows, chunk_starts, pad_hold
+from services.dataset.episodes import EpisodeError, RawEpisode, align, default_max_frame_age_ns, segments
+from services.dataset.pseudo_demos import chunk_rows, chunk_starts, pad_hold
 
 PERIOD = 50_000_000  # 20 Hz
 T0 = 1_700_000_000_000_000_000

@@ -24,8 +24,8 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from services.trainer.cache import DatasetError, DatasetStore
-from services.trainer.pseudo_demos import chunk_rows, chunk_starts, pad_hold
+from services.dataset.build import DatasetError, DatasetStore
+from services.dataset.pseudo_demos import chunk_rows, chunk_starts, pad_hold
 
 SPLITS = ("train", "val", "all")
 

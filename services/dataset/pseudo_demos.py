@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from services.core.action_spaces import state_vector, to_space
-from services.trainer.episodes import Aligned, CameraCalib, EpisodeError, segments
+from services.dataset.episodes import Aligned, CameraCalib, EpisodeError, segments
 
 
 @dataclass

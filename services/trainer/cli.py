@@ -18,7 +18,7 @@ from pathlib import Path
 
 def _train(args: argparse.Namespace) -> int:
     from services.core.config import ConfigError
-    from services.trainer.checkpoint import CheckpointError
+    from services.policy.checkpoint import CheckpointError
     from services.trainer.config import load_train_config
     from services.trainer.train import TrainingError, dist_env, train
 

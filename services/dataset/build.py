@@ -40,13 +40,13 @@ import numpy as np
 
 from services.core.normalizer import Normalizer, NormalizerStats
 from services.core.action_spaces import ACTION_DIM, STATE_NAMES, check_space, resolve_state_frame
-from services.trainer.episodes import (
+from services.dataset.episodes import (
     EpisodeError,
     align,
     load_raw_episode,
     segments,
 )
-from services.trainer.pseudo_demos import PseudoDemo, chunk_starts, make_pseudo_demo
+from services.dataset.pseudo_demos import PseudoDemo, chunk_starts, make_pseudo_demo
 
 VERSION = 1
 MANIFEST = "manifest.json"
@@ -607,7 +607,7 @@ def build_dataset(
     _write_json(out / SUMMARY, summary)
 
     if contact_episodes > 0:
-        from services.trainer.contact_sheet import write_contact_sheet
+        from services.dataset.contact_sheet import write_contact_sheet
 
         write_contact_sheet(out, meta, out / CONTACT_SHEET, max_episodes=contact_episodes)
 

@@ -17,8 +17,8 @@ from pathlib import Path
 from typing import Any
 
 from services.core.action_spaces import SPACES, STATE_FRAMES
-from services.trainer.cache import CONTACT_SHEET, BuildParams, DatasetError, DatasetStore, build_dataset
-from services.trainer.episodes import EpisodeError
+from services.dataset.build import CONTACT_SHEET, BuildParams, DatasetError, DatasetStore, build_dataset
+from services.dataset.episodes import EpisodeError
 
 
 def _size(text: str) -> tuple[int, int]:
