@@ -24,7 +24,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import psutil  # noqa: E402
 
 from bench.common import report  # noqa: E402
-from services.collect import LocalStack  # noqa: E402
+from services.session.collect import LocalStack  # noqa: E402
 from services.core.bus import Bus  # noqa: E402
 from services.session.config import SessionConfig  # noqa: E402
 from services.session.session import Session  # noqa: E402

@@ -23,7 +23,7 @@ from pathlib import Path
 
 def _collect(args: argparse.Namespace) -> int:
     os.environ.setdefault("MUJOCO_GL", "egl")
-    from services.collect import CollectError, collect
+    from services.session.collect import CollectError, collect
     from services.core.config import ConfigError
     from services.core.rig import load_rig
 

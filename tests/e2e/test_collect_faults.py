@@ -7,7 +7,7 @@ import threading
 import pytest
 from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 
-from services.collect import LocalStack
+from services.session.collect import LocalStack
 from services.core import topics
 from services.core.bus import Bus
 from services.pb.episode_pb2 import (
