@@ -1,25 +1,11 @@
-"""The training cache: recorded episodes -> pseudo-demos as memory-mappable numpy arrays.
+"""The dataset build: recorded episodes -> pseudo-demos as memory-mappable numpy arrays.
 
-Layout of a dataset directory::
-
-    manifest.json        written last: build parameters, source MCAPs and their sha256. Its
-                         presence marks the dataset complete; a build removes it first.
-    meta.json            action space, state frame, views, To/Tp/Ta, image size, per-view
-                         calibration (K at the cached size, R_ext, position), source episodes
-    normalizer.json      services.core.normalizer.Normalizer
-    summary.json         counts, drops by reason, action statistics
-    contact_sheet.png    first/middle/last frame of each view of a few episodes, with the
-                         trajectory drawn from the pseudo-demo's own actions
-    episodes/<stem>/     one MCAP's pseudo-demos: episode.json and, per view,
-                         <view>.frames.npy (n, H, W, 3) uint8, <view>.state.npy (n, D) float32,
-                         <view>.action.npy (n, 7) float32, <view>.tick.npy, <view>.stamp_ns.npy,
-                         <view>.ends.npy (segment ends)
-
-Builds are incremental: an episode directory is reused when its source hash and the
-parameters that shaped its arrays are unchanged, and the whole build is skipped when nothing
-changed. A source whose path, size and mtime match the last complete build keeps its recorded
-hash instead of being read again (``--force`` rehashes and rebuilds everything). Each episode
-is written under a temporary name and renamed into place when complete.
+The directory layout is described in ``services.dataset.store``. Builds are incremental: an
+episode directory is reused when its source hash and the parameters that shaped its arrays are
+unchanged, and the whole build is skipped when nothing changed. A source whose path, size and
+mtime match the last complete build keeps its recorded hash instead of being read again
+(``--force`` rehashes and rebuilds everything). Each episode is written under a temporary name
+and renamed into place when complete; the manifest, written last, marks the dataset complete.
 """
 
 from __future__ import annotations
@@ -38,8 +24,9 @@ from typing import Any, Callable, Iterator
 import cv2
 import numpy as np
 
-from services.core.normalizer import Normalizer, NormalizerStats
 from services.core.action_spaces import ACTION_DIM, STATE_NAMES, check_space, resolve_state_frame
+from services.core.normalizer import Normalizer, NormalizerStats
+from services.dataset.contact_sheet import write_contact_sheet
 from services.dataset.episodes import (
     EpisodeError,
     align,
@@ -47,19 +34,8 @@ from services.dataset.episodes import (
     segments,
 )
 from services.dataset.pseudo_demos import PseudoDemo, chunk_starts, make_pseudo_demo
-
-VERSION = 1
-MANIFEST = "manifest.json"
-META = "meta.json"
-NORMALIZER = "normalizer.json"
-SUMMARY = "summary.json"
-CONTACT_SHEET = "contact_sheet.png"
-EPISODES = "episodes"
-ARRAYS = ("frames", "state", "action", "tick", "stamp_ns", "ends")
-
-
-class DatasetError(ValueError):
-    """A user-facing problem with a dataset build or load; one clear line."""
+from services.dataset.store import CONTACT_SHEET, EPISODES, MANIFEST, META, NORMALIZER, SUMMARY, VERSION, DatasetError
+from services.dataset.summary import ACTION_LAYOUT, summarise
 
 
 @dataclass(frozen=True)
@@ -312,115 +288,171 @@ def _build_many(todo: list[Path], hashes: dict[Path, str], root: Path, params: B
             shutil.rmtree(tmp, ignore_errors=True)
 
 
-# -- the dataset store (read side, torch-free) --------------------------------------------------
+# -- the build, step by step ------------------------------------------------------------------
+
+
+def _read_manifest(out: Path) -> dict[str, Any]:
+    try:
+        return json.loads((out / MANIFEST).read_text()) if (out / MANIFEST).is_file() else {}
+    except ValueError:
+        return {}
+
+
+def _check_output(out: Path) -> None:
+    if out.exists() and not out.is_dir():
+        raise DatasetError(f"output {out} exists and is not a directory")
+    if out.is_dir() and any(out.iterdir()) and not ((out / MANIFEST).exists() or (out / EPISODES).is_dir()):
+        raise DatasetError(f"output {out} is a non-empty directory that is not a viewscale dataset")
+
+
+def _hash_sources(sources: list[Path], old: dict[str, Any], force: bool,
+                  progress: Callable[[str], None]) -> tuple[dict[Path, str], dict[Path, os.stat_result]]:
+    """sha256 of every source; one whose path, size and mtime match the last build keeps its hash."""
+    known = {e.get("path"): e for e in old.get("sources", []) if isinstance(e, dict)} if not force else {}
+    stats = {s: s.stat() for s in sources}
+    hashes: dict[Path, str] = {}
+    to_hash = []
+    for src in sources:
+        k, st = known.get(str(src.resolve())), stats[src]
+        if k and k.get("size") == st.st_size and k.get("mtime_ns") == st.st_mtime_ns and k.get("sha256"):
+            hashes[src] = k["sha256"]
+        else:
+            to_hash.append(src)
+    if to_hash:
+        progress(f"hashing {len(to_hash)} episode files")
+    for src in to_hash:
+        hashes[src] = sha256_file(src)
+    return hashes, stats
+
+
+def _manifest(params: BuildParams, sources: list[Path], hashes: dict[Path, str],
+              stats: dict[Path, os.stat_result]) -> dict[str, Any]:
+    return {
+        "version": VERSION,
+        "params": params.to_json(),
+        "sources": [{"path": str(s.resolve()), "sha256": hashes[s], "size": stats[s].st_size,
+                     "mtime_ns": stats[s].st_mtime_ns, "dir": s.stem} for s in sources],
+    }
+
+
+def _is_up_to_date(out: Path, old: dict[str, Any], wanted: dict[str, Any]) -> bool:
+    same = {k: old.get(k) for k in wanted} == wanted and old.get("complete")
+    return bool(same) and all((out / f).is_file() for f in (META, NORMALIZER, SUMMARY))
+
+
+def _start_rebuild(out: Path) -> None:
+    """From here on the directory is not a complete dataset until the new manifest lands."""
+    (out / EPISODES).mkdir(parents=True, exist_ok=True)
+    (out / MANIFEST).unlink(missing_ok=True)
+    for leftover in (out / EPISODES).glob(".tmp-*"):
+        shutil.rmtree(leftover)
+
+
+def _reusable(out: Path, sources: list[Path], hashes: dict[Path, str], key: dict[str, Any],
+              force: bool) -> dict[Path, dict[str, Any]]:
+    """Episode directories of an earlier build made from the same bytes with the same array key."""
+    reuse: dict[Path, dict[str, Any]] = {}
+    for src in sources:
+        dest = out / EPISODES / src.stem
+        if dest.is_dir() and not force:
+            try:
+                prev = json.loads((dest / "episode.json").read_text())
+                if prev["source"]["sha256"] == hashes[src] and prev["key"] == key:
+                    reuse[src] = prev
+            except (OSError, ValueError, KeyError):
+                pass
+    return reuse
+
+
+def _describe_built(info: dict[str, Any], views: tuple[str, ...], secs: float) -> str:
+    rows = ", ".join(f"{v} {info['views'][v]['rows']}" for v in views)
+    dropped = "; ".join(
+        f"{v} " + " ".join(f"{n} {k}" for k, n in c.items() if n)
+        for v, c in info["drops"]["views"].items() if any(c.values()))
+    if info["drops"]["no_action"]:
+        dropped = f"{info['drops']['no_action']} without action" + (f"; {dropped}" if dropped else "")
+    return f"{info['ticks']} ticks -> rows {rows} ({secs:.1f} s)" + (f"; dropped {dropped}" if dropped else "")
 
 
 @dataclass
-class StoredDemo:
-    """A pseudo-demo in the cache: where its arrays live and their length."""
-
-    episode_id: str
-    episode_dir: Path
-    view: str
-    view_index: int
-    rows: int
-    calib: dict[str, Any] | None
-
-    def path(self, name: str) -> Path:
-        return self.episode_dir / f"{self.view}.{name}.npy"
-
-    def load(self, name: str, mmap: bool = True) -> np.ndarray:
-        return np.load(self.path(name), mmap_mode="r" if mmap else None)
+class _Collected:
+    episodes: list[dict[str, Any]] = field(default_factory=list)  # {id, dir, info}, in source order
+    skipped: list[dict[str, str]] = field(default_factory=list)
+    built: int = 0
+    reused: int = 0
+    frames: int = 0
 
 
-class DatasetStore:
-    """A complete dataset directory: meta, normalizer, pseudo-demos. Refuses incomplete builds."""
-
-    def __init__(self, path: str | Path):
-        self.path = Path(path)
-        if not self.path.is_dir():
-            raise DatasetError(f"dataset {self.path} does not exist")
-        manifest = self.path / MANIFEST
-        if not manifest.is_file():
-            hint = " (a build did not finish: run `viewscale dataset build` again)" if (
-                self.path / EPISODES).is_dir() else ""
-            raise DatasetError(f"{self.path} is not a complete dataset: no {MANIFEST}{hint}")
-        try:
-            self.manifest = json.loads(manifest.read_text())
-            self.meta = json.loads((self.path / META).read_text())
-            self.normalizer = Normalizer.load(self.path / NORMALIZER)
-            self.summary = json.loads((self.path / SUMMARY).read_text())
-        except (OSError, ValueError, KeyError) as exc:
-            raise DatasetError(f"{self.path} is damaged: {exc}") from exc
-        if not self.manifest.get("complete"):
-            raise DatasetError(f"{self.path} is not a complete dataset")
-        self.views: list[str] = list(self.meta["views"])
-        self.demos: list[StoredDemo] = []
-        for e in self.meta["episodes"]:
-            d = self.path / EPISODES / e["dir"]
-            for vi, v in enumerate(self.views):
-                ev = e["views"][v]
-                calib = ev["calib"] if "calib" in ev else self.meta["cameras"].get(v)
-                self.demos.append(StoredDemo(e["id"], d, v, vi, int(ev["rows"]), calib))
-
-    @property
-    def episode_ids(self) -> list[str]:
-        return [e["id"] for e in self.meta["episodes"]]
+def _build_episodes(out: Path, sources: list[Path], hashes: dict[Path, str], reuse: dict[Path, dict[str, Any]],
+                    params: BuildParams, jobs: int, skip_bad: bool, progress: Callable[[str], None]) -> _Collected:
+    """Build what cannot be reused, rename each into place, report one line per episode."""
+    got = _Collected()
+    todo = [s for s in sources if s not in reuse]
+    results = _build_many(todo, hashes, out / EPISODES, params, jobs)
+    try:
+        for i, src in enumerate(sources, 1):
+            info = reuse.get(src)
+            if info is not None:
+                got.reused += 1
+                progress(f"[{i}/{len(sources)}] {src.name}: unchanged, reused")
+            else:
+                info, err, secs = next(results)
+                if err is not None:
+                    if not skip_bad:
+                        raise err
+                    got.skipped.append({"file": str(src), "error": str(err)})
+                    progress(f"[{i}/{len(sources)}] {src.name}: SKIPPED: {err}")
+                    continue
+                dest = out / EPISODES / src.stem
+                if dest.exists():
+                    shutil.rmtree(dest)
+                os.replace(out / EPISODES / f".tmp-{src.stem}", dest)
+                got.built += 1
+                got.frames += info["frames_decoded"]
+                progress(f"[{i}/{len(sources)}] {src.name}: {_describe_built(info, params.views, secs)}")
+            got.episodes.append({"id": info["episode_id"], "dir": src.stem, "info": info})
+    finally:
+        results.close()  # stops the workers and removes unfinished temporary directories
+    return got
 
 
-# -- the build ------------------------------------------------------------------------------------
+def _prune(out: Path, episodes: list[dict[str, Any]]) -> None:
+    """Remove episode directories of sources no longer in the build; refuse an empty or ambiguous one."""
+    keep = {e["dir"] for e in episodes}
+    for d in (out / EPISODES).iterdir():
+        if d.is_dir() and d.name not in keep:
+            shutil.rmtree(d)
+    if not episodes:
+        raise DatasetError("no usable episodes: every one was skipped (see the messages above)")
+    ids = [e["id"] for e in episodes]
+    if len(set(ids)) != len(ids):
+        dup = sorted({x for x in ids if ids.count(x) > 1})
+        raise DatasetError(f"episode id {dup[0]} appears in more than one file")
 
 
-def _summarise(store_dir: Path, params: BuildParams, episodes: list[dict[str, Any]], norm: Normalizer,
-               skipped: list[dict[str, str]]) -> dict[str, Any]:
-    acts, samples_per_view, rows_per_view = [], {v: 0 for v in params.views}, {v: 0 for v in params.views}
-    drops: dict[str, Any] = {"duplicate_state": 0, "no_action": 0, "stale_action": 0, "action_without_state": 0,
-                             "views": {v: {"missing_frame": 0, "stale_frame": 0, "bad_frame": 0}
-                                       for v in params.views}}
+def _fit_normalizer(out: Path, episodes: list[dict[str, Any]], views: tuple[str, ...]) -> Normalizer:
+    stats = NormalizerStats()
     for e in episodes:
-        d = store_dir / EPISODES / e["dir"]
-        info = e["info"]
-        for k in ("duplicate_state", "no_action", "stale_action", "action_without_state"):
-            drops[k] += int(info["drops"].get(k, 0))
-        for v in params.views:
-            for k, n in info["drops"]["views"][v].items():
-                drops["views"][v][k] = drops["views"][v].get(k, 0) + int(n)
-            a = np.load(d / f"{v}.action.npy")
-            acts.append(a)
-            rows_per_view[v] += len(a)
-            samples_per_view[v] += len(chunk_starts(np.load(d / f"{v}.ends.npy"), params.To, params.Tp, params.Ta))
-    a = np.concatenate(acts) if acts else np.zeros((0, ACTION_DIM))
-    a_n = norm.normalize_action(a) if len(a) else a
+        d = out / EPISODES / e["dir"]
+        for v in views:
+            stats.add_actions(np.load(d / f"{v}.action.npy"))
+            stats.add_states(np.load(d / f"{v}.state.npy"))
+    if stats.state_min is None:
+        raise DatasetError("no samples: every tick was dropped (see the drop counts with --verbose)")
+    return stats.normalizer(STATE_NAMES)
 
-    def stat(f) -> list[float] | None:
-        return [round(float(x), 6) for x in f(a, axis=0)] if len(a) else None
 
-    return {
-        "episodes": len(episodes),
-        "views": list(params.views),
-        "pseudo_demos": len(episodes) * len(params.views),
-        "action_space": params.space,
-        "state_frame": params.state_frame,
-        "image_size": list(params.image_size),
-        "To": params.To, "Tp": params.Tp, "Ta": params.Ta,
-        "ticks": sum(int(e["info"]["ticks"]) for e in episodes),
-        "rows": sum(rows_per_view.values()),
-        "rows_per_view": rows_per_view,
-        "samples": sum(samples_per_view.values()),
-        "samples_per_view": samples_per_view,
-        "successful_episodes": sum(1 for e in episodes if e["info"]["meta"].get("success")),
-        "flagged_episodes": {e["id"]: e["info"]["meta"]["flags"] for e in episodes if e["info"]["meta"].get("flags")},
-        "drops": drops,
-        "skipped_episodes": skipped,
-        "action_stats": {
-            "layout": ["dp_x", "dp_y", "dp_z", "drot_x", "drot_y", "drot_z", "gripper"],
-            "mean": stat(np.mean), "std": stat(np.std), "min": stat(np.min), "max": stat(np.max),
-            "pos_norm_max": float(np.linalg.norm(a[:, 0:3], axis=1).max()) if len(a) else 0.0,
-            "rot_norm_max": float(np.linalg.norm(a[:, 3:6], axis=1).max()) if len(a) else 0.0,
-            "normalised_abs_max": [round(float(x), 6) for x in np.abs(a_n).max(axis=0)] if len(a) else None,
-        },
-        "normalizer": {"pos_scale": norm.pos_scale, "rot_scale": norm.rot_scale},
-    }
+def _cameras(episodes: list[dict[str, Any]], views: tuple[str, ...]) -> tuple[dict[str, Any], dict[str, bool]]:
+    """Per view: the first calibrated episode's calibration, and whether any episode differs from it."""
+    cameras: dict[str, Any] = {}
+    varies: dict[str, bool] = {}
+    for v in views:
+        cals = [e["info"]["views"][v]["calib"] for e in episodes if e["info"]["views"][v]["calib"] is not None]
+        cameras[v] = cals[0] if cals else None
+        varies[v] = any(not np.allclose(c["R_ext"], cals[0]["R_ext"], atol=1e-6)
+                        or not np.allclose(c["position"], cals[0]["position"], atol=1e-6)
+                        or not np.allclose(c["K"], cals[0]["K"], atol=1e-6) for c in cals[1:])
+    return cameras, varies
 
 
 def _episode_view(info: dict[str, Any], camera: dict[str, Any] | None) -> dict[str, Any]:
@@ -432,6 +464,34 @@ def _episode_view(info: dict[str, Any], camera: dict[str, Any] | None) -> dict[s
     if not same:
         out["calib"] = c
     return out
+
+
+def _meta(params: BuildParams, episodes: list[dict[str, Any]]) -> dict[str, Any]:
+    cameras, varies = _cameras(episodes, params.views)
+    return {
+        "version": VERSION,
+        "action_space": params.space,
+        "state_frame": params.state_frame,
+        "action_dim": ACTION_DIM,
+        "action_layout": ACTION_LAYOUT,
+        "state_dim": len(STATE_NAMES),
+        "state_names": list(STATE_NAMES),
+        "views": list(params.views),
+        "To": params.To,
+        "Tp": params.Tp,
+        "Ta": params.Ta,
+        "pad_actions": params.pad_actions,
+        "image_size": {"width": params.image_size[0], "height": params.image_size[1]},
+        "cameras": cameras,  # per view, from the first calibrated episode; an episode that differs says so
+        "calibration_varies": varies,
+        "episodes": [
+            {"id": e["id"], "dir": e["dir"], "source": e["info"]["source"]["path"],
+             "sha256": e["info"]["source"]["sha256"], "task": e["info"]["meta"].get("task"),
+             "success": e["info"]["meta"].get("success"),
+             "views": {v: _episode_view(e["info"]["views"][v], cameras[v]) for v in params.views}}
+            for e in episodes
+        ],
+    }
 
 
 def build_dataset(
@@ -452,169 +512,33 @@ def build_dataset(
     t0 = time.perf_counter()
     out = Path(out)
     sources = find_episodes(raw)
-    if out.exists() and not out.is_dir():
-        raise DatasetError(f"output {out} exists and is not a directory")
-    if out.is_dir() and any(out.iterdir()) and not ((out / MANIFEST).exists() or (out / EPISODES).is_dir()):
-        raise DatasetError(f"output {out} is a non-empty directory that is not a viewscale dataset")
+    _check_output(out)
+    old = _read_manifest(out)
+    hashes, stats = _hash_sources(sources, old, force, progress)
+    wanted = _manifest(params, sources, hashes, stats)
+    if old and not force and _is_up_to_date(out, old, wanted):
+        summary = json.loads((out / SUMMARY).read_text())
+        progress(f"{out} is up to date ({len(sources)} episodes unchanged)")
+        return BuildResult(out, True, reused=len(sources), seconds=time.perf_counter() - t0, summary=summary)
 
-    manifest_path = out / MANIFEST
-    try:
-        old = json.loads(manifest_path.read_text()) if manifest_path.is_file() else {}
-    except ValueError:
-        old = {}
-    # A file whose path, size and mtime match the last complete build keeps its recorded hash.
-    known = {e.get("path"): e for e in old.get("sources", []) if isinstance(e, dict)} if not force else {}
-    stats = {s: s.stat() for s in sources}
-    hashes: dict[Path, str] = {}
-    to_hash = []
-    for src in sources:
-        k, st = known.get(str(src.resolve())), stats[src]
-        if k and k.get("size") == st.st_size and k.get("mtime_ns") == st.st_mtime_ns and k.get("sha256"):
-            hashes[src] = k["sha256"]
-        else:
-            to_hash.append(src)
-    if to_hash:
-        progress(f"hashing {len(to_hash)} episode files")
-    for src in to_hash:
-        hashes[src] = sha256_file(src)
-    wanted_manifest = {
-        "version": VERSION,
-        "params": params.to_json(),
-        "sources": [{"path": str(s.resolve()), "sha256": hashes[s], "size": stats[s].st_size,
-                     "mtime_ns": stats[s].st_mtime_ns, "dir": s.stem} for s in sources],
-    }
-    if old and not force:
-        same = {k: old.get(k) for k in wanted_manifest} == wanted_manifest and old.get("complete")
-        if same and all((out / f).is_file() for f in (META, NORMALIZER, SUMMARY)):
-            summary = json.loads((out / SUMMARY).read_text())
-            progress(f"{out} is up to date ({len(sources)} episodes unchanged)")
-            return BuildResult(out, True, reused=len(sources), seconds=time.perf_counter() - t0, summary=summary)
-
-    # From here on the directory is not a complete dataset until the new manifest lands.
-    (out / EPISODES).mkdir(parents=True, exist_ok=True)
-    manifest_path.unlink(missing_ok=True)
-    for leftover in (out / EPISODES).glob(".tmp-*"):
-        shutil.rmtree(leftover)
-
-    key = params.array_key()
-    reuse: dict[Path, dict[str, Any]] = {}
-    for src in sources:
-        dest = out / EPISODES / src.stem
-        if dest.is_dir() and not force:
-            try:
-                prev = json.loads((dest / "episode.json").read_text())
-                if prev["source"]["sha256"] == hashes[src] and prev["key"] == key:
-                    reuse[src] = prev
-            except (OSError, ValueError, KeyError):
-                pass
-    todo = [s for s in sources if s not in reuse]
+    _start_rebuild(out)
+    reuse = _reusable(out, sources, hashes, params.array_key(), force)
     t_eps = time.perf_counter()
-    results = _build_many(todo, hashes, out / EPISODES, params, jobs)
-
-    episodes: list[dict[str, Any]] = []
-    skipped: list[dict[str, str]] = []
-    built = reused = frames = 0
-    try:
-        for i, src in enumerate(sources, 1):
-            info = reuse.get(src)
-            if info is not None:
-                reused += 1
-                progress(f"[{i}/{len(sources)}] {src.name}: unchanged, reused")
-            else:
-                info, err, secs = next(results)
-                if err is not None:
-                    if not skip_bad:
-                        raise err
-                    skipped.append({"file": str(src), "error": str(err)})
-                    progress(f"[{i}/{len(sources)}] {src.name}: SKIPPED: {err}")
-                    continue
-                dest = out / EPISODES / src.stem
-                if dest.exists():
-                    shutil.rmtree(dest)
-                os.replace(out / EPISODES / f".tmp-{src.stem}", dest)
-                built += 1
-                frames += info["frames_decoded"]
-                rows = ", ".join(f"{v} {info['views'][v]['rows']}" for v in params.views)
-                dropped = "; ".join(
-                    f"{v} " + " ".join(f"{n} {k}" for k, n in c.items() if n)
-                    for v, c in info["drops"]["views"].items() if any(c.values()))
-                if info["drops"]["no_action"]:
-                    dropped = f"{info['drops']['no_action']} without action" + (f"; {dropped}" if dropped else "")
-                progress(f"[{i}/{len(sources)}] {src.name}: {info['ticks']} ticks -> rows {rows} ({secs:.1f} s)"
-                         + (f"; dropped {dropped}" if dropped else ""))
-            episodes.append({"id": info["episode_id"], "dir": src.stem, "info": info})
-    finally:
-        results.close()  # stops the workers and removes unfinished temporary directories
+    got = _build_episodes(out, sources, hashes, reuse, params, jobs, skip_bad, progress)
     episode_seconds = time.perf_counter() - t_eps
+    _prune(out, got.episodes)
 
-    keep = {e["dir"] for e in episodes}
-    for d in (out / EPISODES).iterdir():
-        if d.is_dir() and d.name not in keep:
-            shutil.rmtree(d)
-    if not episodes:
-        raise DatasetError("no usable episodes: every one was skipped (see the messages above)")
-    ids = [e["id"] for e in episodes]
-    if len(set(ids)) != len(ids):
-        dup = sorted({x for x in ids if ids.count(x) > 1})
-        raise DatasetError(f"episode id {dup[0]} appears in more than one file")
-
-    stats = NormalizerStats()
-    for e in episodes:
-        d = out / EPISODES / e["dir"]
-        for v in params.views:
-            stats.add_actions(np.load(d / f"{v}.action.npy"))
-            stats.add_states(np.load(d / f"{v}.state.npy"))
-    if stats.state_min is None:
-        raise DatasetError("no samples: every tick was dropped (see the drop counts with --verbose)")
-    norm = stats.normalizer(STATE_NAMES)
+    norm = _fit_normalizer(out, got.episodes, params.views)
     norm.save(out / NORMALIZER)
-
-    cameras: dict[str, Any] = {}
-    varies: dict[str, bool] = {}
-    for v in params.views:
-        cals = [e["info"]["views"][v]["calib"] for e in episodes if e["info"]["views"][v]["calib"] is not None]
-        cameras[v] = cals[0] if cals else None
-        varies[v] = any(not np.allclose(c["R_ext"], cals[0]["R_ext"], atol=1e-6)
-                        or not np.allclose(c["position"], cals[0]["position"], atol=1e-6)
-                        or not np.allclose(c["K"], cals[0]["K"], atol=1e-6) for c in cals[1:])
-    meta = {
-        "version": VERSION,
-        "action_space": params.space,
-        "state_frame": params.state_frame,
-        "action_dim": ACTION_DIM,
-        "action_layout": ["dp_x", "dp_y", "dp_z", "drot_x", "drot_y", "drot_z", "gripper"],
-        "state_dim": len(STATE_NAMES),
-        "state_names": list(STATE_NAMES),
-        "views": list(params.views),
-        "To": params.To,
-        "Tp": params.Tp,
-        "Ta": params.Ta,
-        "pad_actions": params.pad_actions,
-        "image_size": {"width": params.image_size[0], "height": params.image_size[1]},
-        "cameras": cameras,  # per view, from the first calibrated episode; an episode that differs says so
-        "calibration_varies": varies,
-        "episodes": [
-            {"id": e["id"], "dir": e["dir"], "source": e["info"]["source"]["path"],
-             "sha256": e["info"]["source"]["sha256"], "task": e["info"]["meta"].get("task"),
-             "success": e["info"]["meta"].get("success"),
-             "views": {v: _episode_view(e["info"]["views"][v], cameras[v]) for v in params.views}}
-            for e in episodes
-        ],
-    }
+    meta = _meta(params, got.episodes)
     _write_json(out / META, meta)
-    summary = _summarise(out, params, episodes, norm, skipped)
+    summary = summarise(out, params, got.episodes, norm, got.skipped)
     summary["build_s"] = round(time.perf_counter() - t0, 3)
     _write_json(out / SUMMARY, summary)
-
     if contact_episodes > 0:
-        from services.dataset.contact_sheet import write_contact_sheet
-
         write_contact_sheet(out, meta, out / CONTACT_SHEET, max_episodes=contact_episodes)
 
-    manifest = dict(wanted_manifest)
-    manifest["complete"] = True
-    manifest["built_at"] = datetime.now(timezone.utc).isoformat(timespec="seconds")
-    _write_json(manifest_path, manifest)
-    return BuildResult(out, False, built=built, reused=reused, frames=frames, seconds=time.perf_counter() - t0,
-                       episode_seconds=episode_seconds, summary=summary)
-
+    manifest = dict(wanted, complete=True, built_at=datetime.now(timezone.utc).isoformat(timespec="seconds"))
+    _write_json(out / MANIFEST, manifest)
+    return BuildResult(out, False, built=got.built, reused=got.reused, frames=got.frames,
+                       seconds=time.perf_counter() - t0, episode_seconds=episode_seconds, summary=summary)

@@ -14,10 +14,11 @@ import json
 import os
 import sys
 from pathlib import Path
-from typing import Any
 
 from services.core.action_spaces import SPACES, STATE_FRAMES
-from services.dataset.build import CONTACT_SHEET, BuildParams, DatasetError, DatasetStore, build_dataset
+from services.dataset.build import BuildParams, build_dataset
+from services.dataset.store import CONTACT_SHEET, DatasetError, DatasetStore
+from services.dataset.summary import format_summary
 from services.dataset.episodes import EpisodeError
 
 
@@ -38,49 +39,6 @@ def _views(text: str) -> tuple[str, ...]:
 def _err(msg: str) -> int:
     print(f"error: {msg}", file=sys.stderr)
     return 2
-
-
-def _fmt_vec(v: list[float] | None) -> str:
-    return "-" if v is None else "[" + ", ".join(f"{x:+.4f}" for x in v) + "]"
-
-
-def format_summary(s: dict[str, Any], path: Path | None = None) -> str:
-    lines = []
-    if path is not None:
-        lines.append(f"dataset {path}")
-    lines += [
-        f"  episodes      {s['episodes']} ({s['successful_episodes']} successful)",
-        f"  views         {', '.join(s['views'])}  -> {s['pseudo_demos']} pseudo-demos",
-        f"  action space  {s['action_space']}   state frame {s['state_frame']}",
-        f"  image size    {s['image_size'][0]}x{s['image_size'][1]}   To={s['To']} Tp={s['Tp']} Ta={s['Ta']}",
-        f"  ticks         {s['ticks']} recorded, {s['rows']} kept over all views",
-        f"  samples       {s['samples']}  (" + ", ".join(f"{v} {n}" for v, n in s["samples_per_view"].items()) + ")",
-    ]
-    d = s["drops"]
-    view_drops = ", ".join(
-        f"{v}: " + " ".join(f"{k}={n}" for k, n in c.items() if n) for v, c in d["views"].items()
-        if any(c.values()))
-    lines.append(f"  dropped       no_action={d['no_action']} duplicate_state={d['duplicate_state']} "
-                 f"stale_action={d['stale_action']}{' (kept)' if d['stale_action'] else ''}"
-                 + (f"; frames {view_drops}" if view_drops else "; no frames dropped"))
-    a = s["action_stats"]
-    lines += [
-        "  actions       (dp_x dp_y dp_z drot_x drot_y drot_z gripper)",
-        f"    mean        {_fmt_vec(a['mean'])}",
-        f"    std         {_fmt_vec(a['std'])}",
-        f"    min         {_fmt_vec(a['min'])}",
-        f"    max         {_fmt_vec(a['max'])}",
-        f"    |normed|max {_fmt_vec(a['normalised_abs_max'])}",
-        f"  normalizer    pos_scale {s['normalizer']['pos_scale']:.5f} m   "
-        f"rot_scale {s['normalizer']['rot_scale']:.5f} rad",
-    ]
-    if s.get("flagged_episodes"):
-        lines.append(f"  flagged       {len(s['flagged_episodes'])} episodes: " + "; ".join(
-            f"{k}: {', '.join(v)}" for k, v in list(s["flagged_episodes"].items())[:5]))
-    if s.get("skipped_episodes"):
-        lines.append(f"  skipped       {len(s['skipped_episodes'])} episodes: " + "; ".join(
-            x["error"] for x in s["skipped_episodes"][:5]))
-    return "\n".join(lines)
 
 
 def _build(args: argparse.Namespace) -> int:

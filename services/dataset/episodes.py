@@ -24,8 +24,10 @@ from typing import Any
 
 import numpy as np
 
-from services.core.rig import Camera
+from services.core import topics
 from services.core.action_spaces import quat_wxyz_to_matrix
+from services.core.rig import Camera
+from services.recorder.reader import EpisodeReadError, read_episode
 
 
 class EpisodeError(ValueError):
@@ -224,9 +226,6 @@ def _moved(a: CameraCalib, b: CameraCalib) -> bool:
 
 def load_raw_episode(path: str | Path, views: list[str]) -> RawEpisode:
     """Read the topics a dataset build needs for ``views`` from one recorded episode."""
-    from services.core import topics
-    from services.recorder.reader import EpisodeReadError, read_episode
-
     path = Path(path)
     wanted = [topics.ROBOT_STATE.mcap_topic, topics.APPLIED_ACTION.mcap_topic]
     for v in views:

@@ -24,7 +24,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from services.dataset.build import DatasetError, DatasetStore
+from services.dataset.store import DatasetError, DatasetStore
 from services.dataset.pseudo_demos import chunk_rows, chunk_starts, pad_hold
 
 SPLITS = ("train", "val", "all")

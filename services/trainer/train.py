@@ -110,7 +110,7 @@ def load_train_data(cfg: TrainConfig) -> TrainData:
     """Open the dataset directory ``cfg.data`` (built by ``viewscale dataset build``): training and
     held-out episodes of the chosen views, with To/Tp/Ta from the model config where the user set
     them (windows are cut when loading) and from the dataset otherwise."""
-    from services.dataset.build import DatasetError
+    from services.dataset.store import DatasetError
     from services.trainer.data import PseudoDemoDataset
 
     horizons = {

@@ -1,0 +1,94 @@
+"""The read side of a built dataset: its layout, and ``DatasetStore`` (torch-free).
+
+Layout of a dataset directory::
+
+    manifest.json        written last: build parameters, source MCAPs and their sha256. Its
+                         presence marks the dataset complete; a build removes it first.
+    meta.json            action space, state frame, views, To/Tp/Ta, image size, per-view
+                         calibration (K at the cached size, R_ext, position), source episodes
+    normalizer.json      services.core.normalizer.Normalizer
+    summary.json         counts, drops by reason, action statistics
+    contact_sheet.png    first/middle/last frame of each view of a few episodes, with the
+                         trajectory drawn from the pseudo-demo's own actions
+    episodes/<stem>/     one MCAP's pseudo-demos: episode.json and, per view,
+                         <view>.frames.npy (n, H, W, 3) uint8, <view>.state.npy (n, D) float32,
+                         <view>.action.npy (n, 7) float32, <view>.tick.npy, <view>.stamp_ns.npy,
+                         <view>.ends.npy (segment ends)
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from services.core.normalizer import Normalizer
+
+VERSION = 1
+MANIFEST = "manifest.json"
+META = "meta.json"
+NORMALIZER = "normalizer.json"
+SUMMARY = "summary.json"
+CONTACT_SHEET = "contact_sheet.png"
+EPISODES = "episodes"
+ARRAYS = ("frames", "state", "action", "tick", "stamp_ns", "ends")
+
+
+class DatasetError(ValueError):
+    """A user-facing problem with a dataset build or load; one clear line."""
+
+
+@dataclass
+class StoredDemo:
+    """A pseudo-demo in the cache: where its arrays live and their length."""
+
+    episode_id: str
+    episode_dir: Path
+    view: str
+    view_index: int
+    rows: int
+    calib: dict[str, Any] | None
+
+    def path(self, name: str) -> Path:
+        return self.episode_dir / f"{self.view}.{name}.npy"
+
+    def load(self, name: str, mmap: bool = True) -> np.ndarray:
+        return np.load(self.path(name), mmap_mode="r" if mmap else None)
+
+
+class DatasetStore:
+    """A complete dataset directory: meta, normalizer, pseudo-demos. Refuses incomplete builds."""
+
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+        if not self.path.is_dir():
+            raise DatasetError(f"dataset {self.path} does not exist")
+        manifest = self.path / MANIFEST
+        if not manifest.is_file():
+            hint = " (a build did not finish: run `viewscale dataset build` again)" if (
+                self.path / EPISODES).is_dir() else ""
+            raise DatasetError(f"{self.path} is not a complete dataset: no {MANIFEST}{hint}")
+        try:
+            self.manifest = json.loads(manifest.read_text())
+            self.meta = json.loads((self.path / META).read_text())
+            self.normalizer = Normalizer.load(self.path / NORMALIZER)
+            self.summary = json.loads((self.path / SUMMARY).read_text())
+        except (OSError, ValueError, KeyError) as exc:
+            raise DatasetError(f"{self.path} is damaged: {exc}") from exc
+        if not self.manifest.get("complete"):
+            raise DatasetError(f"{self.path} is not a complete dataset")
+        self.views: list[str] = list(self.meta["views"])
+        self.demos: list[StoredDemo] = []
+        for e in self.meta["episodes"]:
+            d = self.path / EPISODES / e["dir"]
+            for vi, v in enumerate(self.views):
+                ev = e["views"][v]
+                calib = ev["calib"] if "calib" in ev else self.meta["cameras"].get(v)
+                self.demos.append(StoredDemo(e["id"], d, v, vi, int(ev["rows"]), calib))
+
+    @property
+    def episode_ids(self) -> list[str]:
+        return [e["id"] for e in self.meta["episodes"]]
