@@ -30,7 +30,7 @@ from sim.tasks import (
     quat_yaw,
 )
 from services.core.robot_types import ObjectPose, RobotSnapshot
-from sim.world import clip_norm
+from services.core.geometry import clip_norm
 
 Action = tuple[np.ndarray, np.ndarray, float]
 

@@ -18,7 +18,6 @@ import queue
 import threading
 from concurrent.futures import Future
 
-from services.camera.backends.sim import SimCameraBackend
 from services.camera.publisher import CameraPublisher
 from services.core import topics
 from services.core.bus import Bus
@@ -28,8 +27,8 @@ from services.core.runtime import serve
 from services.pb.common_pb2 import Header
 from services.pb.episode_pb2 import SimCommand, SimControlReply, SimControlRequest
 from services.pb.sensors_pb2 import ObjectPose, TaskState
-from services.robot.backends.sim import SimRobotDriver
 from services.robot.loop import ControlLoop
+from sim.backends import SimCamera, SimRobot
 from sim.config import SimConfig
 from sim.world import TASKS, SimWorld
 
@@ -44,13 +43,13 @@ class SimService:
         self.world = SimWorld(cfg.task, self.rig, cfg.width, cfg.height, cfg.control_hz)
         self.world.reset(cfg.seed)
         self.seed = cfg.seed
-        self.driver = SimRobotDriver(self.world)
-        self.backend = SimCameraBackend(self.world, cfg.width, cfg.height)
-        self.cameras = CameraPublisher(bus, self.backend, cfg.jpeg_quality)
+        self.robot = SimRobot(self.world)
+        self.camera = SimCamera(self.world, cfg.width, cfg.height)
+        self.cameras = CameraPublisher(bus, self.camera, cfg.jpeg_quality)
         self._task_pub = bus.publisher(topics.TASK_STATE)
         self._task_seq = 0
         self.loop = ControlLoop(
-            bus, self.driver, cfg.control_hz, cfg.realtime, cfg.command_timeout_s,
+            bus, self.robot, cfg.control_hz, cfg.realtime, cfg.command_timeout_s,
             cfg.command_wait_fraction, observers=[self._observe],
         )
         self.running = False
@@ -77,7 +76,7 @@ class SimService:
 
     # -- per-tick observation (loop thread) ---------------------------------------------
     def _observe(self, tick: int, stamp_ns: int) -> None:
-        self.cameras.publish_frames(self.backend.grab(stamp_ns))
+        self.cameras.publish_frames(self.camera.grab(stamp_ns))
         self._task_seq += 1
         msg = TaskState(
             header=Header(stamp_ns=stamp_ns, seq=self._task_seq, frame_id=topics.WORLD_FRAME),
@@ -130,8 +129,8 @@ class SimService:
         """Swap in a world for another task (the renderer must be created on this thread)."""
         old = self.world
         self.world = SimWorld(task, self.rig, self.cfg.width, self.cfg.height, self.cfg.control_hz)
-        self.driver.world = self.world
-        self.backend.world = self.world
+        self.robot.world = self.world
+        self.camera.world = self.world
         old.close()
 
     def _serve_jobs(self, wait: float) -> None:

@@ -2,7 +2,7 @@
 
 import os
 
-os.environ.setdefault("MUJOCO_GL", "egl")  # the sim backend renders headless
+os.environ.setdefault("MUJOCO_GL", "egl")  # the sim driver renders headless
 
 from services.camera.config import CameraConfig  # noqa: E402
 from services.camera.service import main  # noqa: E402

@@ -4,16 +4,28 @@ from typing import Literal
 
 from pydantic import Field
 
+from services.camera.base import CameraDriver
 from services.core.bus import BusConfig
 from services.core.config import Frozen
+from services.core.registry import DriverConfig, Registry
+
+
+class SimCameraConfig(DriverConfig):
+    """The rig's cameras rendered by MuJoCo from a static scene (placement and calibration checks)."""
+
+    type: Literal["sim"] = "sim"
+    task: str = "lift"  # the scene to render
+    seed: int = 0  # scene seed
+
+
+CAMERA_DRIVERS: Registry[CameraDriver] = Registry("camera", CameraDriver)
+CAMERA_DRIVERS.register("sim", "sim.backends:SimCamera", SimCameraConfig)
 
 
 class CameraConfig(Frozen):
     bus: BusConfig = BusConfig()  # how to reach the session's Zenoh network
-    backend: Literal["sim"] = "sim"  # camera hardware; USB/RTSP capture comes behind the same interface
+    driver: CAMERA_DRIVERS.config_type() = SimCameraConfig()  # {type: sim} or {type: package.module:Class, ...}
     rig: str = "five15"  # rig preset or YAML: names, poses and intrinsics of the cameras
-    task: str = "lift"  # sim backend only: the scene to render
-    seed: int = 0  # sim backend only: scene seed
     width: int = Field(84, ge=16)  # frame width (px)
     height: int = Field(84, ge=16)  # frame height (px)
     fps: float = Field(20.0, gt=0)  # frames per second per camera

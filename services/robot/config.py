@@ -1,19 +1,30 @@
 from __future__ import annotations
 
-from typing import Any
+from typing import Literal
 
 from pydantic import Field
 
 from services.core.bus import BusConfig
 from services.core.config import Frozen
+from services.core.registry import DriverConfig, Registry
+from services.robot.base import RobotDriver
+
+
+class SimRobotConfig(DriverConfig):
+    """A MuJoCo arm without cameras (to exercise a teleop driver)."""
+
+    type: Literal["sim"] = "sim"
+    task: str = "lift"  # the scene to load
+    seed: int = 0  # scene randomisation seed
+
+
+ROBOT_DRIVERS: Registry[RobotDriver] = Registry("robot", RobotDriver)
+ROBOT_DRIVERS.register("sim", "sim.backends:SimRobot", SimRobotConfig)
 
 
 class RobotConfig(Frozen):
     bus: BusConfig = BusConfig()  # how to reach the session's Zenoh network
-    driver: str = "sim"  # "sim" (a MuJoCo arm without cameras) or "package.module:ClassName"
-    driver_args: dict[str, Any] = Field(default_factory=dict)  # keyword arguments for the driver class
-    task: str = "lift"  # sim driver only: the scene to load
-    seed: int = 0  # sim driver only: scene randomisation seed
+    driver: ROBOT_DRIVERS.config_type() = SimRobotConfig()  # {type: sim, ...} or {type: package.module:Class, ...}
     control_hz: float = Field(20.0, gt=0)  # control ticks per second
     realtime: bool = True  # pace ticks by the wall clock (always true on hardware)
     command_timeout_s: float = Field(0.5, gt=0)  # lockstep only: wait this long for a tick's command

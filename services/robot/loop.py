@@ -28,7 +28,7 @@ from services.core.clock import Rate, now_ns
 from services.core.robot_types import EefDelta, action_from_msg, action_msg, state_msg
 from services.pb.common_pb2 import Header
 from services.pb.control_pb2 import AppliedAction, EefCommand
-from services.robot.backends.base import RobotDriver
+from services.robot.base import RobotDriver
 
 log = logging.getLogger(__name__)
 

@@ -1,6 +1,6 @@
 """The robot service: a RobotDriver behind the control loop, ticking from start-up.
 
-On hardware this is the process that owns the arm. With ``driver: sim`` it runs a MuJoCo arm
+On hardware this is the process that owns the arm. With ``driver: {type: sim}`` it runs a MuJoCo arm
 without cameras (useful to exercise a teleop source); full sim collection sessions use the sim
 service instead, which runs the same loop with cameras and episode control.
 """
@@ -12,23 +12,15 @@ import threading
 
 from services.core.bus import Bus
 from services.core.runtime import serve
-from services.robot.backends.base import RobotDriver, load_driver_class
-from services.robot.config import RobotConfig
+from services.robot.base import RobotDriver
+from services.robot.config import ROBOT_DRIVERS, RobotConfig
 from services.robot.loop import ControlLoop
 
 log = logging.getLogger(__name__)
 
 
 def make_driver(cfg: RobotConfig) -> RobotDriver:
-    if cfg.driver == "sim":
-        from services.core.rig import load_rig
-        from services.robot.backends.sim import SimRobotDriver
-        from sim.world import SimWorld
-
-        world = SimWorld(cfg.task, load_rig("front"), control_hz=cfg.control_hz)
-        world.reset(cfg.seed)
-        return SimRobotDriver(world)
-    return load_driver_class(cfg.driver)(**cfg.driver_args)
+    return ROBOT_DRIVERS.build(cfg.driver, control_hz=cfg.control_hz)
 
 
 class RobotService:
@@ -52,4 +44,4 @@ class RobotService:
 
 
 def main(cfg: RobotConfig) -> int:
-    return serve("robot", cfg.bus, lambda bus: RobotService(cfg, bus, make_driver(cfg)), cfg.driver)
+    return serve("robot", cfg.bus, lambda bus: RobotService(cfg, bus, make_driver(cfg)), cfg.driver.type)

@@ -6,10 +6,22 @@ from pydantic import Field
 
 from services.core.bus import BusConfig
 from services.core.config import Frozen
+from services.core.registry import DriverConfig, Registry
+from services.teleop.base import TeleopDriver
+
+
+class ScriptedTeleopConfig(DriverConfig):
+    """The sim's scripted experts; they read the sim's privileged task state (sim only)."""
+
+    type: Literal["scripted"] = "scripted"
+
+
+TELEOP_DRIVERS: Registry[TeleopDriver] = Registry("teleop", TeleopDriver)
+TELEOP_DRIVERS.register("scripted", "sim.backends:ScriptedTeleop", ScriptedTeleopConfig)
 
 
 class TeleopConfig(Frozen):
     bus: BusConfig = BusConfig()  # how to reach the session's Zenoh network
-    source: Literal["scripted"] = "scripted"  # command source; devices for a person come later
+    driver: TELEOP_DRIVERS.config_type() = ScriptedTeleopConfig()  # {type: scripted} or {type: package.module:Class}
     task_state_wait_s: float = Field(0.05, ge=0)  # how long to wait for a tick's task state after its robot state
     log_level: str = "INFO"  # logging level of the process

@@ -20,25 +20,21 @@ from services.core.runtime import serve
 from services.pb.common_pb2 import Header
 from services.pb.control_pb2 import EefCommand
 from services.pb.sensors_pb2 import RobotState, TaskState
-from services.teleop.backends.base import TeleopSource
-from services.teleop.config import TeleopConfig
+from services.teleop.base import TeleopDriver
+from services.teleop.config import TELEOP_DRIVERS, TeleopConfig
 
 log = logging.getLogger(__name__)
 
 
-def make_source(cfg: TeleopConfig) -> TeleopSource:
-    if cfg.source == "scripted":
-        from services.teleop.backends.scripted import ScriptedSource
-
-        return ScriptedSource()
-    raise ValueError(f"unknown teleop source {cfg.source!r}")
+def make_driver(cfg: TeleopConfig) -> TeleopDriver:
+    return TELEOP_DRIVERS.build(cfg.driver)
 
 
 class TeleopService:
-    def __init__(self, cfg: TeleopConfig, bus: Bus, source: TeleopSource):
+    def __init__(self, cfg: TeleopConfig, bus: Bus, driver: TeleopDriver):
         self.cfg = cfg
         self.bus = bus
-        self.source = source
+        self.driver = driver
         self.malformed = Counter()
         self.errors = 0
         self.commands = 0
@@ -49,7 +45,7 @@ class TeleopService:
         self._seq = 0
         self._pub = bus.publisher(topics.COMMAND)
         bus.subscribe(topics.ROBOT_STATE, self._on_state, on_error=self._on_malformed)
-        if source.needs_task_state:
+        if driver.needs_task_state:
             bus.subscribe(topics.TASK_STATE, self._on_task, on_error=self._on_malformed)
 
     def __enter__(self) -> "TeleopService":
@@ -57,7 +53,7 @@ class TeleopService:
         return self
 
     def __exit__(self, *exc) -> None:
-        self.source.close()
+        self.driver.close()
 
     def _on_malformed(self, rx: Received, exc: Exception) -> None:
         self.malformed[rx.key] += 1
@@ -90,7 +86,7 @@ class TeleopService:
                     return None
                 self._cv.wait(0.1)
             state, self._state = self._state, None
-            if not self.source.needs_task_state:
+            if not self.driver.needs_task_state:
                 return state, None
             key = (state.episode_id, state.tick)
             deadline = time.monotonic() + self.cfg.task_state_wait_s
@@ -106,9 +102,9 @@ class TeleopService:
             state, task = item
             if state.episode_id != self._episode:
                 self._episode = state.episode_id
-                self.source.reset(task.task if task is not None else "")
+                self.driver.reset(task.task if task is not None else "")
             try:
-                delta = self.source.act(state, task)
+                delta = self.driver.act(state, task)
             except Exception as exc:  # no command: the robot holds still and flags the tick stale
                 self.errors += 1
                 log.warning("teleop source failed at tick %d: %s", state.tick, exc)
@@ -116,7 +112,7 @@ class TeleopService:
             self._seq += 1
             self._pub.put(EefCommand(
                 header=Header(stamp_ns=now_ns(), seq=self._seq, frame_id=topics.WORLD_FRAME),
-                tick=state.tick, action=action_msg(delta), source=self.cfg.source,
+                tick=state.tick, action=action_msg(delta), source=self.cfg.driver.type,
             ))
             self.commands += 1
         log.info("teleop stopped after %d commands (%d errors, %d malformed)",
@@ -124,4 +120,4 @@ class TeleopService:
 
 
 def main(cfg: TeleopConfig) -> int:
-    return serve("teleop", cfg.bus, lambda bus: TeleopService(cfg, bus, make_source(cfg)), cfg.source)
+    return serve("teleop", cfg.bus, lambda bus: TeleopService(cfg, bus, make_driver(cfg)), cfg.driver.type)

@@ -15,7 +15,9 @@ from services.core.rig import Camera, load_rig
 from services.core.tensors import decode_jpeg
 from services.pb.common_pb2 import Header
 from services.pb.control_pb2 import EefAction, EefCommand
-from services.robot.backends.base import RobotDriver, load_driver_class
+from services.core.config import ConfigError
+from services.robot.base import RobotDriver
+from services.robot.config import ROBOT_DRIVERS, RobotConfig
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -36,7 +38,7 @@ def stop(proc: subprocess.Popen) -> None:
 
 
 def test_robot_service_follows_commands_and_reports_what_ran(zenoh_endpoint, make_bus):
-    proc = start("services.robot", zenoh_endpoint, "driver=sim", "control_hz=20")
+    proc = start("services.robot", zenoh_endpoint, "driver.type=sim", "control_hz=20")
     try:
         bus = make_bus()
         bus.wait_alive({"robot"}, timeout=30)
@@ -102,16 +104,17 @@ def test_camera_service_publishes_frames_matching_its_calibration(zenoh_endpoint
 
 
 def test_real_driver_is_chosen_by_import_path():
-    from services.robot.backends.sim import SimRobotDriver
+    from sim.backends import SimRobot
 
-    assert load_driver_class("services.robot.backends.sim:SimRobotDriver") is SimRobotDriver
-    assert issubclass(SimRobotDriver, RobotDriver)
+    cfg = RobotConfig.model_validate({"driver": {"type": "sim.backends:SimRobot"}})
+    assert ROBOT_DRIVERS.resolve(cfg.driver)[0] is SimRobot
+    assert issubclass(SimRobot, RobotDriver)
     with pytest.raises(ValueError, match="package.module:ClassName"):
-        load_driver_class("no_colon_here")
-    with pytest.raises(ValueError, match="cannot be imported"):
-        load_driver_class("mylab.missing:Arm")
-    with pytest.raises(ValueError, match="not a RobotDriver"):
-        load_driver_class("services.core.rig:Rig")
+        RobotConfig.model_validate({"driver": {"type": "no_colon_here"}})
+    with pytest.raises(ConfigError, match="cannot be imported"):
+        ROBOT_DRIVERS.resolve(RobotConfig.model_validate({"driver": {"type": "mylab.missing:Arm"}}).driver)
+    with pytest.raises(ConfigError, match="not a RobotDriver"):
+        ROBOT_DRIVERS.resolve(RobotConfig.model_validate({"driver": {"type": "services.core.rig:Rig"}}).driver)
 
 
 def test_bad_config_is_one_clear_line():
