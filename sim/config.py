@@ -4,6 +4,7 @@ from pydantic import Field
 
 from services.core.bus import BusConfig
 from services.core.config import Frozen
+from services.robot.safety import SafetyConfig
 
 
 class SimConfig(Frozen):
@@ -15,6 +16,7 @@ class SimConfig(Frozen):
     height: int = Field(84, ge=16)  # rendered frame height (px)
     jpeg_quality: int = Field(90, ge=10, le=100)  # JPEG quality of published frames
     control_hz: float = Field(20.0, gt=0)  # control ticks per second
+    safety: SafetyConfig = SafetyConfig()  # workspace box, speed caps, command timeout: as on hardware
     realtime: bool = True  # pace ticks by the wall clock; false: lockstep, as fast as commands come
     command_timeout_s: float = Field(1.0, gt=0)  # lockstep only: wait this long for a tick's command
     command_wait_fraction: float = Field(0.8, gt=0, le=1)  # real time: wait at most this part of a period

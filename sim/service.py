@@ -28,6 +28,7 @@ from services.pb.common_pb2 import Header
 from services.pb.episode_pb2 import SimCommand, SimControlReply, SimControlRequest
 from services.pb.sensors_pb2 import ObjectPose, TaskState
 from services.robot.loop import ControlLoop
+from services.robot.safety import Safety
 from sim.backends import SimCamera, SimRobot
 from sim.config import SimConfig
 from sim.world import TASKS, SimWorld
@@ -49,7 +50,7 @@ class SimService:
         self._task_pub = bus.publisher(topics.TASK_STATE)
         self._task_seq = 0
         self.loop = ControlLoop(
-            bus, self.robot, cfg.control_hz, cfg.realtime, cfg.command_timeout_s,
+            bus, Safety(self.robot, cfg.safety, cfg.control_hz), cfg.control_hz, cfg.realtime, cfg.command_timeout_s,
             cfg.command_wait_fraction, observers=[self._observe],
         )
         self.running = False

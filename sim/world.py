@@ -3,14 +3,11 @@
 Action semantics (the ``EefAction`` message): ``dp`` (3,) metres and ``drot`` (3,) an
 axis-angle vector in radians, both in the base (= world) frame, and a gripper target closure in
 [0, 1] (0 open, 1 closed). The world keeps an EEF *target* pose and integrates each delta into
-it, rotation composing on the left in the base frame (``R_next = Rot(drot) @ R``):
-
-1. the step is clipped to ``MAX_SPEED / control_hz`` metres and ``MAX_ANGULAR_SPEED /
-   control_hz`` radians (per tick; 3 cm and 0.15 rad at 20 Hz);
-2. the target position is clipped to the workspace box ``WORKSPACE_LO``..``WORKSPACE_HI``;
-3. the target is kept within ``MAX_LEAD`` metres / ``MAX_LEAD_ROT`` radians of the actual EEF
-   pose, so a blocked arm (pressing on the table, a jammed nut) does not wind the target up
-   and lurch when it frees.
+it, rotation composing on the left in the base frame (``R_next = Rot(drot) @ R``), and keeps
+the target within ``MAX_LEAD`` metres / ``MAX_LEAD_ROT`` radians of the actual EEF pose, so a
+blocked arm (pressing on the table, a jammed nut) does not wind the target up and lurch when it
+frees. The workspace box and the speed caps are not the world's: the sim arm runs behind the
+same safety layer as hardware (``services.robot.safety``), which limits every action first.
 
 Damped-least-squares IK (``sim.ik``) turns the target into joint positions once per tick, and
 the joint position actuators follow, their set points ramped linearly over the physics
@@ -48,10 +45,6 @@ from sim.tasks import TASKS, make_task  # noqa: E402
 
 __all__ = ["TASKS", "SimWorld"]
 
-MAX_SPEED = 0.6  # m/s: per-tick translation limit = MAX_SPEED / control_hz
-MAX_ANGULAR_SPEED = 3.0  # rad/s: per-tick rotation limit = MAX_ANGULAR_SPEED / control_hz
-WORKSPACE_LO = np.array([0.15, -0.45, 0.0])  # EEF target box, world frame (m)
-WORKSPACE_HI = np.array([0.8, 0.45, 0.55])
 MAX_LEAD = 0.05  # m the target may run ahead of the actual EEF position
 MAX_LEAD_ROT = 0.5  # rad the target may run ahead of the actual EEF rotation
 HOME_POS = np.array([0.45, 0.0, 0.25])  # EEF at reset, pointing down (R_DOWN)
@@ -147,8 +140,6 @@ class SimWorld:
             raise RuntimeError(f"home pose unreachable (IK error {home.pos_err:.4f} m, {home.rot_err:.4f} rad)")
         self._q_home = home.q
         self._renderer: MultiCameraRenderer | None = None
-        self._max_dp = MAX_SPEED / self.control_hz
-        self._max_drot = MAX_ANGULAR_SPEED / self.control_hz
         self._reset_state(None)
 
     # -- episode ----------------------------------------------------------------------------
@@ -186,17 +177,16 @@ class SimWorld:
         """Integrate one EEF delta into the target and simulate one control period.
 
         ``dp`` and ``drot`` are 3 finite numbers each, ``gripper`` one (clipped to [0, 1]);
-        anything else is a ValueError. See the module docstring for the limits applied.
+        anything else is a ValueError. Only the lead limit is applied here (module docstring).
         """
-        dp = clip_norm(_vector("dp", dp, 3), self._max_dp)
-        drot = clip_norm(_vector("drot", drot, 3), self._max_drot)
+        dp = _vector("dp", dp, 3)
+        drot = _vector("drot", drot, 3)
         g = min(max(_scalar("gripper", gripper), 0.0), 1.0)
 
         d = self.data
         eef_pos = d.site_xpos[self._site].copy()
         eef_R = d.site_xmat[self._site].reshape(3, 3).copy()
-        pos = np.clip(self._target_pos + dp, WORKSPACE_LO, WORKSPACE_HI)
-        self._target_pos = eef_pos + clip_norm(pos - eef_pos, MAX_LEAD)
+        self._target_pos = eef_pos + clip_norm(self._target_pos + dp - eef_pos, MAX_LEAD)
         R = _rotvec_to_mat(drot) @ self._target_R
         lead = rotation_error(R, eef_R)
         if np.linalg.norm(lead) > MAX_LEAD_ROT:

@@ -30,13 +30,15 @@ class EefCommand(_message.Message):
     def __init__(self, header: _Optional[_Union[_common_pb2.Header, _Mapping]] = ..., tick: _Optional[int] = ..., action: _Optional[_Union[EefAction, _Mapping]] = ..., source: _Optional[str] = ...) -> None: ...
 
 class AppliedAction(_message.Message):
-    __slots__ = ("header", "tick", "action", "stale")
+    __slots__ = ("header", "tick", "action", "stale", "limits")
     HEADER_FIELD_NUMBER: _ClassVar[int]
     TICK_FIELD_NUMBER: _ClassVar[int]
     ACTION_FIELD_NUMBER: _ClassVar[int]
     STALE_FIELD_NUMBER: _ClassVar[int]
+    LIMITS_FIELD_NUMBER: _ClassVar[int]
     header: _common_pb2.Header
     tick: int
     action: EefAction
     stale: bool
-    def __init__(self, header: _Optional[_Union[_common_pb2.Header, _Mapping]] = ..., tick: _Optional[int] = ..., action: _Optional[_Union[EefAction, _Mapping]] = ..., stale: _Optional[bool] = ...) -> None: ...
+    limits: _containers.RepeatedScalarFieldContainer[str]
+    def __init__(self, header: _Optional[_Union[_common_pb2.Header, _Mapping]] = ..., tick: _Optional[int] = ..., action: _Optional[_Union[EefAction, _Mapping]] = ..., stale: _Optional[bool] = ..., limits: _Optional[_Iterable[str]] = ...) -> None: ...

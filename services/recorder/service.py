@@ -93,6 +93,7 @@ class _Episode:
         self.last_seq: dict[str, int] = {}
         self.cameras: set[str] = set()
         self.stale = 0  # applied actions that were a hold for want of a command
+        self.clipped = 0  # applied actions the safety layer changed
         self.state_n = 0
         self.state_first = 0
         self.state_last = 0
@@ -486,8 +487,9 @@ class Recorder:
                 else:
                     ep.missing[key] += header.seq - last - 1
             ep.last_seq[key] = header.seq
-        if key == APPLIED_ACTION.key and msg.stale:
-            ep.stale += 1
+        if key == APPLIED_ACTION.key:
+            ep.stale += bool(msg.stale)
+            ep.clipped += bool(len(msg.limits))
         if key == ROBOT_STATE.key:
             if ep.state_n == 0:
                 ep.state_first = stamp
@@ -511,6 +513,7 @@ class Recorder:
         meta.malformed.update({k: v for k, v in ep.malformed.items() if v})
         meta.gaps.update({k: v for k, v in ep.gaps.items() if v})
         meta.stale_ticks = ep.stale
+        meta.clipped_ticks = ep.clipped
         meta.end_ns = now_ns()
 
         flags = list(ep.events)
@@ -529,6 +532,8 @@ class Recorder:
             flags.append(f"sequence gaps: messages lost upstream ({_fmt(unexplained)})")
         if ep.stale:
             flags.append(f"stale: {ep.stale} ticks held still without a fresh command (teleop late or missing)")
+        if ep.clipped:
+            flags.append(f"clipped: {ep.clipped} ticks limited by the safety layer (speed, workspace or gripper range)")
         if ticks and states != ticks:
             flags.append(f"robot/state: {states} states for {ticks} ticks")
         for cam, n in sorted(meta.frames.items()):

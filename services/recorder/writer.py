@@ -71,6 +71,7 @@ def meta_to_record(meta: EpisodeMeta) -> dict[str, str]:
         "achieved_hz": repr(float(meta.achieved_hz)),
         "ticks": str(meta.ticks),
         "stale_ticks": str(meta.stale_ticks),
+        "clipped_ticks": str(meta.clipped_ticks),
         "flags": json.dumps(list(meta.flags)),
         "start_ns": str(meta.start_ns),
         "end_ns": str(meta.end_ns),
@@ -83,7 +84,7 @@ def meta_to_record(meta: EpisodeMeta) -> dict[str, str]:
 def record_to_dict(record: Mapping[str, str]) -> dict:
     """The ``episode`` string map with typed values (ints, floats, bool, dicts, list)."""
     out: dict = dict(record)
-    for key in ("seed", "ticks", "stale_ticks", "start_ns", "end_ns"):
+    for key in ("seed", "ticks", "stale_ticks", "clipped_ticks", "start_ns", "end_ns"):
         if key in out:
             out[key] = int(out[key])
     for key in ("control_hz", "achieved_hz"):

@@ -8,6 +8,7 @@ from services.core.bus import BusConfig
 from services.core.config import Frozen
 from services.core.registry import DriverConfig, Registry
 from services.robot.base import RobotDriver
+from services.robot.safety import SafetyConfig
 
 
 class SimRobotConfig(DriverConfig):
@@ -25,6 +26,7 @@ ROBOT_DRIVERS.register("sim", "sim.backends:SimRobot", SimRobotConfig)
 class RobotConfig(Frozen):
     bus: BusConfig = BusConfig()  # how to reach the session's Zenoh network
     driver: ROBOT_DRIVERS.config_type() = SimRobotConfig()  # {type: sim, ...} or {type: package.module:Class, ...}
+    safety: SafetyConfig = SafetyConfig()  # workspace box, speed caps, command timeout (every driver)
     control_hz: float = Field(20.0, gt=0)  # control ticks per second
     realtime: bool = True  # pace ticks by the wall clock (always true on hardware)
     command_timeout_s: float = Field(0.5, gt=0)  # lockstep only: wait this long for a tick's command

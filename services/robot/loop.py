@@ -8,8 +8,10 @@ One tick k:
      the period from the tick's start, but never less than ``min_command_wait`` of a period
      after the state went out (slow rendering must not starve the teleop: a late tick beats
      a stale action); in lockstep ``command_timeout_s``;
-  3. apply it -- or hold still with the last gripper target if none came (flagged ``stale``) --
-     and publish AppliedAction(tick=k): the action that really ran between state k and k+1.
+  3. hand it to the safety layer (``services.robot.safety``), which executes it within the
+     workspace and speed limits -- or holds still with the last gripper target if none came
+     (flagged ``stale``) -- and publish AppliedAction(tick=k): the action that really ran between
+     state k and k+1, with the limits that changed it.
 So an episode always has exactly one applied action per observation, which is what
 demonstrations are made of.
 """
@@ -28,7 +30,7 @@ from services.core.clock import Rate, now_ns
 from services.core.robot_types import EefDelta, action_from_msg, action_msg, state_msg
 from services.pb.common_pb2 import Header
 from services.pb.control_pb2 import AppliedAction, EefCommand
-from services.robot.base import RobotDriver
+from services.robot.safety import Safety
 
 log = logging.getLogger(__name__)
 
@@ -39,7 +41,7 @@ class ControlLoop:
     def __init__(
         self,
         bus: Bus,
-        driver: RobotDriver,
+        robot: Safety,
         control_hz: float,
         realtime: bool = True,
         command_timeout_s: float = 0.5,
@@ -47,7 +49,7 @@ class ControlLoop:
         observers: list[Observer] | None = None,
         min_command_wait: float = 0.25,
     ):
-        self.driver = driver
+        self.robot = robot  # the driver behind the safety layer
         self.control_hz = control_hz
         self.realtime = realtime
         self.command_timeout_s = command_timeout_s
@@ -59,8 +61,8 @@ class ControlLoop:
         self.tick = 0
         self.episode_id = ""
         self.stale_ticks = 0
+        self.clipped_ticks = 0  # ticks whose command the safety layer changed
         self.rejected = Counter()  # reason -> count of commands we could not use
-        self._gripper = 0.0
         self._seq = 0
         self._cv = threading.Condition()
         self._latest: tuple[int, EefDelta] | None = None  # (tick, validated action)
@@ -101,7 +103,8 @@ class ControlLoop:
         self.tick = 0
         self.episode_id = episode_id
         self.stale_ticks = 0
-        self._gripper = 0.0
+        self.clipped_ticks = 0
+        self.robot.begin_episode()
         with self._cv:
             self._latest = None
 
@@ -114,7 +117,7 @@ class ControlLoop:
         """Publish the tick's observation."""
         self._tick_start = time.monotonic()
         stamp = now_ns()
-        snapshot = self.driver.read()
+        snapshot = self.robot.read()
         for observer in self.observers:
             observer(self.tick, stamp)
         self._seq += 1
@@ -129,19 +132,16 @@ class ControlLoop:
                            self._published_at + self.min_command_wait * period)
         else:
             deadline = self._published_at + self.command_timeout_s
-        delta = self._wait_command(self.tick, deadline)
-        stale = delta is None
-        if stale:
-            self.stale_ticks += 1
-            delta = EefDelta.hold(self._gripper)
-        self._gripper = delta.gripper
-        self.driver.apply(delta)
+        ran = self.robot.apply(self._wait_command(self.tick, deadline))
+        self.stale_ticks += ran.stale
+        self.clipped_ticks += bool(ran.limits)
         self._applied_pub.put(
             AppliedAction(
                 header=Header(stamp_ns=now_ns(), seq=self._seq, frame_id=topics.WORLD_FRAME),
                 tick=self.tick,
-                action=action_msg(delta),
-                stale=stale,
+                action=action_msg(ran.action),
+                stale=ran.stale,
+                limits=list(ran.limits),
             )
         )
         self.tick += 1
@@ -153,4 +153,5 @@ class ControlLoop:
             self.step()
             if self.realtime:
                 rate.sleep()
-        log.info("control loop stopped at tick %d (%d stale ticks)", self.tick, self.stale_ticks)
+        log.info("control loop stopped at tick %d (%d stale ticks, %d clipped)", self.tick, self.stale_ticks,
+                 self.clipped_ticks)

@@ -14,6 +14,7 @@ from services.core.bus import Bus
 from services.core.runtime import serve
 from services.robot.base import RobotDriver
 from services.robot.config import ROBOT_DRIVERS, RobotConfig
+from services.robot.safety import Safety
 from services.robot.loop import ControlLoop
 
 log = logging.getLogger(__name__)
@@ -27,9 +28,9 @@ class RobotService:
     def __init__(self, cfg: RobotConfig, bus: Bus, driver: RobotDriver):
         self.cfg = cfg
         self.bus = bus
-        self.driver = driver
+        self.robot = Safety(driver, cfg.safety, cfg.control_hz)
         self.loop = ControlLoop(
-            bus, driver, cfg.control_hz, cfg.realtime, cfg.command_timeout_s, cfg.command_wait_fraction
+            bus, self.robot, cfg.control_hz, cfg.realtime, cfg.command_timeout_s, cfg.command_wait_fraction
         )
 
     def __enter__(self) -> "RobotService":
@@ -37,7 +38,7 @@ class RobotService:
         return self
 
     def __exit__(self, *exc) -> None:
-        self.driver.close()
+        self.robot.close()
 
     def run(self, stop: threading.Event) -> None:
         self.loop.run(stop)

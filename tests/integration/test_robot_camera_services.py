@@ -73,6 +73,36 @@ def test_robot_service_follows_commands_and_reports_what_ran(zenoh_endpoint, mak
         stop(proc)
 
 
+def test_applied_actions_are_what_ran_after_the_safety_layer(zenoh_endpoint, make_bus):
+    # A command of 20 cm in one tick is 4 m/s: the arm moves 3 cm (0.6 m/s at 20 Hz) and
+    # robot/applied says so, with the limit that changed it; a recorded demo never claims more.
+    proc = start("services.robot", zenoh_endpoint, "driver.type=sim", "control_hz=20")
+    try:
+        bus = make_bus()
+        bus.wait_alive({"robot"}, timeout=30)
+        applied = []
+        cv = threading.Condition()
+        pub = bus.publisher(topics.COMMAND)
+        bus.subscribe(topics.ROBOT_STATE, lambda msg, _rx: pub.put(EefCommand(
+            header=Header(seq=msg.tick), tick=msg.tick, action=EefAction(dp=[0.2, 0, 0], drot=[0, 0, 0], gripper=0.0))))
+
+        def on_applied(msg, _rx):
+            with cv:
+                applied.append(msg)
+                cv.notify_all()
+
+        bus.subscribe(topics.APPLIED_ACTION, on_applied)
+        with cv:
+            assert cv.wait_for(lambda: sum(not a.stale for a in applied) >= 5, timeout=30)
+        with cv:
+            first = [a for a in applied if not a.stale][:5]  # from home: 15 cm along +x, inside the box
+        for a in first:
+            assert list(a.limits) == ["speed"]
+            assert np.allclose(a.action.dp, [0.6 / 20, 0.0, 0.0], atol=1e-12)
+    finally:
+        stop(proc)
+
+
 def test_camera_service_publishes_frames_matching_its_calibration(zenoh_endpoint, make_bus):
     proc = start("services.camera", zenoh_endpoint, "rig=three15", "fps=10", "width=64", "height=48")
     try:

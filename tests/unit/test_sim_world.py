@@ -15,7 +15,10 @@ from services.core.rig import load_rig
 from sim.experts import make_expert, quat_to_mat, rot_z
 from sim.ik import SiteIk
 from sim.scene import ARM_JOINTS, EEF_SITE, R_DOWN
-from sim.world import MAX_LEAD, MAX_SPEED, WORKSPACE_HI, SimWorld
+from services.core.robot_types import EefDelta
+from services.robot.safety import Safety, SafetyConfig
+from sim.backends import SimRobot
+from sim.world import MAX_LEAD, SimWorld
 
 ZERO = np.zeros(3)
 
@@ -107,37 +110,47 @@ def test_the_arm_follows_a_commanded_pose(front):
 
 
 def test_deltas_integrate_into_the_target_within_the_step_and_box_limits(front):
+    # The speed caps and the box are the safety layer's (services.robot.safety): the sim arm
+    # runs behind it exactly as hardware does.
+    limits = SafetyConfig()
     with SimWorld("lift", front) as w:
         w.reset(0)
+        arm = Safety(SimRobot(w), limits, w.control_hz)
+        arm.read()
         p0, R0 = w.target()
-        w.step([0.0, 0.01, 0.0], [0.0, 0.0, 0.05], 0.0)
+        arm.apply(EefDelta(np.array([0.0, 0.01, 0.0]), np.array([0.0, 0.0, 0.05]), 0.0))
         p1, R1 = w.target()
         assert np.allclose(p1 - p0, [0.0, 0.01, 0.0], atol=1e-12)
         assert np.allclose(R1, _rotmat([0.0, 0.0, 0.05]) @ R0, atol=1e-12)  # composes on the left
         # A huge step is clipped to the per-tick limit ...
-        w.step([0.0, 0.0, 1.0], ZERO, 0.0)
+        arm.read()
+        arm.apply(EefDelta(np.array([0.0, 0.0, 1.0]), ZERO, 0.0))
         p2, _ = w.target()
-        assert np.linalg.norm(p2 - p1) == pytest.approx(MAX_SPEED / w.control_hz)
+        assert np.linalg.norm(p2 - p1) == pytest.approx(limits.max_speed / w.control_hz)
         # ... and the target never leaves the workspace box nor runs far ahead of the arm.
         for _ in range(40):
-            w.step([0.0, 0.0, 1.0], ZERO, 0.0)
+            arm.read()
+            arm.apply(EefDelta(np.array([0.0, 0.0, 1.0]), ZERO, 0.0))
             p, _ = w.target()
-            assert p[2] <= WORKSPACE_HI[2] + 1e-12
+            assert p[2] <= limits.workspace_hi[2] + 1e-12
             assert np.linalg.norm(p - w.robot().eef_pos) <= MAX_LEAD + 1e-9
-        assert w.robot().eef_pos[2] > WORKSPACE_HI[2] - 0.01
+        assert w.robot().eef_pos[2] > limits.workspace_hi[2] - 0.01
 
 
 def test_pressing_into_the_table_does_not_wind_up_the_target(front):
     with SimWorld("lift", front) as w:
         w.reset(3)
+        arm = Safety(SimRobot(w), SafetyConfig(), w.control_hz)  # the box and the lead limit together
         for _ in range(40):
-            w.step([0.0, 0.0, -0.03], ZERO, 1.0)
+            arm.read()
+            arm.apply(EefDelta(np.array([0.0, 0.0, -0.03]), ZERO, 1.0))
         p, _ = w.target()
         r = w.robot()
         assert r.eef_pos[2] > -0.005  # the fingers stop on the table
         assert np.linalg.norm(p - r.eef_pos) <= MAX_LEAD + 1e-9
         for _ in range(3):  # the way back up starts at once
-            w.step([0.0, 0.0, 0.03], ZERO, 1.0)
+            arm.read()
+            arm.apply(EefDelta(np.array([0.0, 0.0, 0.03]), ZERO, 1.0))
         assert w.robot().eef_pos[2] > r.eef_pos[2] + 0.02
 
 

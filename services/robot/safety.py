@@ -1,0 +1,141 @@
+"""The safety layer: every robot driver, simulated or real, runs behind it.
+
+Per control tick it takes the command the loop received (or none) and decides what the driver
+executes, in this order:
+
+1. no fresh command: hold still (zero motion, the last gripper target); once no fresh command
+   has come for ``command_timeout_s``, stop the arm (``RobotDriver.stop``) and keep holding
+   until commands come again;
+2. translation capped at ``max_speed / control_hz`` metres and rotation at
+   ``max_angular_speed / control_hz`` radians per tick (the vector is scaled, its direction kept);
+3. the workspace box: the translation is cut so that the position the arm is servoing to
+   (``RobotDriver.target_position``, or the measured EEF where a driver keeps no target) stays
+   inside ``workspace_lo``..``workspace_hi``, per axis;
+4. the gripper target clamped to [0, 1].
+
+What it returns is the action that really ran and the limits that changed it; the control loop
+publishes exactly that on ``robot/applied``, so a demonstration records what the arm did, not
+what was asked. The sim gets the same limits as hardware because it sits behind the same layer.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+
+import numpy as np
+from pydantic import Field, model_validator
+
+from services.core.config import Frozen
+from services.core.geometry import clip_norm
+from services.core.robot_types import EefDelta, RobotSnapshot
+from services.robot.base import RobotDriver
+
+log = logging.getLogger(__name__)
+
+SPEED, ROTATION, WORKSPACE, GRIPPER = "speed", "rotation", "workspace", "gripper"
+
+
+class SafetyConfig(Frozen):
+    workspace_lo: tuple[float, float, float] = (0.15, -0.45, 0.0)  # EEF target box, base frame (m)
+    workspace_hi: tuple[float, float, float] = (0.8, 0.45, 0.55)  # its upper corner
+    max_speed: float = Field(0.6, gt=0)  # m/s: per-tick translation cap = max_speed / control_hz
+    max_angular_speed: float = Field(3.0, gt=0)  # rad/s: per-tick rotation cap = max_angular_speed / control_hz
+    command_timeout_s: float = Field(1.0, gt=0)  # no fresh command for this long: stop the arm (hold before)
+
+    @model_validator(mode="after")
+    def _box(self) -> "SafetyConfig":
+        if any(lo >= hi for lo, hi in zip(self.workspace_lo, self.workspace_hi)):
+            raise ValueError(f"workspace_lo {self.workspace_lo} must be below workspace_hi {self.workspace_hi}")
+        return self
+
+
+@dataclass(frozen=True)
+class Executed:
+    """One tick's outcome: what the driver executed and why it differs from the command."""
+
+    action: EefDelta  # what ran (base frame)
+    stale: bool  # no fresh command: a hold
+    limits: tuple[str, ...] = ()  # the limits that changed the command (speed, rotation, workspace, gripper)
+
+
+class Safety:
+    """A RobotDriver behind the limits of ``SafetyConfig``; a context manager closing the driver."""
+
+    def __init__(self, driver: RobotDriver, cfg: SafetyConfig, control_hz: float):
+        self.driver = driver
+        self.cfg = cfg
+        self.max_dp = cfg.max_speed / control_hz
+        self.max_drot = cfg.max_angular_speed / control_hz
+        self._lo = np.asarray(cfg.workspace_lo, dtype=np.float64)
+        self._hi = np.asarray(cfg.workspace_hi, dtype=np.float64)
+        self._snapshot: RobotSnapshot | None = None
+        self._gripper = 0.0
+        self._last_fresh = time.monotonic()
+        self.stopped = False  # the arm was stopped for want of commands
+        self.stops = 0  # times that happened
+
+    def begin_episode(self) -> None:
+        """A new episode: gripper target open, the command timeout counted from now."""
+        self._gripper = 0.0
+        self._last_fresh = time.monotonic()
+        self.stopped = False
+
+    def read(self) -> RobotSnapshot:
+        self._snapshot = self.driver.read()
+        return self._snapshot
+
+    def limit(self, command: EefDelta) -> tuple[EefDelta, tuple[str, ...]]:
+        """``command`` within the speed caps, the workspace box and the gripper range."""
+        limits: list[str] = []
+        dp = np.asarray(command.dp, dtype=np.float64)
+        drot = np.asarray(command.drot, dtype=np.float64)
+        if np.linalg.norm(dp) > self.max_dp:
+            dp = clip_norm(dp, self.max_dp)
+            limits.append(SPEED)
+        if np.linalg.norm(drot) > self.max_drot:
+            drot = clip_norm(drot, self.max_drot)
+            limits.append(ROTATION)
+        ref = self.driver.target_position()
+        if ref is None:
+            ref = (self._snapshot or self.read()).eef_pos
+        ref = np.asarray(ref, dtype=np.float64)
+        goal = ref + dp
+        if np.any((goal < self._lo) | (goal > self._hi)):
+            dp = np.clip(goal, self._lo, self._hi) - ref
+            limits.append(WORKSPACE)
+        gripper = min(max(float(command.gripper), 0.0), 1.0)
+        if gripper != command.gripper:
+            limits.append(GRIPPER)
+        return EefDelta(dp, drot, gripper), tuple(limits)
+
+    def apply(self, command: EefDelta | None) -> Executed:
+        """Execute one tick: ``command`` within the limits, or a hold when it is None."""
+        now = time.monotonic()
+        if command is None:
+            if not self.stopped and now - self._last_fresh >= self.cfg.command_timeout_s:
+                self.stopped = True
+                self.stops += 1
+                log.warning("no command for %.1f s: stopping the arm", now - self._last_fresh)
+                self.driver.stop()
+            hold = EefDelta.hold(self._gripper)
+            self.driver.apply(hold)
+            return Executed(hold, stale=True)
+        if self.stopped:
+            log.info("commands are back after %.1f s: moving again", now - self._last_fresh)
+            self.stopped = False
+        self._last_fresh = now
+        action, limits = self.limit(command)
+        self.driver.apply(action)
+        self._gripper = action.gripper
+        return Executed(action, stale=False, limits=limits)
+
+    def close(self) -> None:
+        self.driver.close()
+
+    def __enter__(self) -> "Safety":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
