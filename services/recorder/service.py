@@ -22,6 +22,7 @@ import queue
 import threading
 import time
 from collections import Counter
+from dataclasses import dataclass
 from concurrent.futures import Future
 from concurrent.futures import TimeoutError as FutureTimeout
 from pathlib import Path
@@ -32,7 +33,7 @@ from google.protobuf.message import DecodeError, Message
 from services.core.bus import Bus, Received
 from services.core.clock import now_ns
 from services.core.runtime import serve
-from services.core.topics import APPLIED_ACTION, EPISODE, EPISODE_CONTROL, ROBOT_STATE, Topic, topic_for_key
+from services.core.topics import EPISODE, EPISODE_CONTROL, ROBOT_STATE, Topic, topic_for_key
 from services.pb.episode_pb2 import (
     EPISODE_COMMAND_DISCARD,
     EPISODE_COMMAND_START,
@@ -43,7 +44,8 @@ from services.pb.episode_pb2 import (
     EpisodeRequest,
 )
 from services.recorder.config import RecorderConfig
-from services.recorder.validate import MalformedPayload, capture_ns, header_of, parse
+from services.recorder.episode import EpisodeCounts, camera_of, episode_meta, fmt_counts, is_calibration
+from services.recorder.validate import MalformedPayload, capture_ns, parse
 from services.recorder.writer import (
     EPISODE_CHANNEL,
     EPISODE_RECORD,
@@ -65,51 +67,13 @@ _LOG_FIRST = 3  # malformed payloads logged in full per topic and episode; then 
 _FRESH_CALIBRATION_NS = 5_000_000_000
 
 
-def _is_calibration(key: str) -> bool:
-    return key.startswith("camera/") and (key.endswith("/calibration") or key.endswith("/pose"))
+@dataclass
+class _Episode(EpisodeCounts):
+    """The open episode: its counters (``recorder/episode.py``), its file, and a write error if one
+    happened (then nothing more is written). Touched by the writer thread only."""
 
-
-def _camera_of(key: str) -> str:
-    return key.split("/")[1]
-
-
-def _fmt(counts: dict[str, int]) -> str:
-    return ", ".join(f"{k} {v}" for k, v in sorted(counts.items()))
-
-
-class _Episode:
-    """Counters of the open episode (touched by the writer thread only)."""
-
-    def __init__(self, req: EpisodeRequest, writer: EpisodeWriter, start_ns: int):
-        self.meta = EpisodeMeta(episode_id=req.episode_id, task=req.task, seed=req.seed, rig=req.rig,
-                                control_hz=req.control_hz, start_ns=start_ns, path=str(writer.path))
-        self.writer = writer
-        self.start_ns = start_ns
-        self.written: Counter[str] = Counter()  # key -> messages written
-        self.malformed: Counter[str] = Counter()
-        self.gaps: Counter[str] = Counter()  # key -> sequence discontinuities
-        self.resets: Counter[str] = Counter()  # key -> times the sequence went back (publisher restart)
-        self.missing: Counter[str] = Counter()  # key -> messages skipped by forward sequence jumps
-        self.last_seq: dict[str, int] = {}
-        self.cameras: set[str] = set()
-        self.stale = 0  # applied actions that were a hold for want of a command
-        self.clipped = 0  # applied actions the safety layer changed
-        self.state_n = 0
-        self.state_first = 0
-        self.state_last = 0
-        self.events: list[str] = []  # flags from liveliness and errors, in order
-        self.left: set[str] = set()  # services that lost liveliness during the episode
-        self.error = ""  # a write error: nothing more is written
-
-    def note(self, flag: str) -> None:
-        if flag not in self.events:
-            self.events.append(flag)
-
-    @property
-    def achieved_hz(self) -> float:
-        if self.state_n < 2 or self.state_last <= self.state_first:
-            return 0.0
-        return (self.state_n - 1) * 1e9 / (self.state_last - self.state_first)
+    writer: EpisodeWriter | None = None
+    error: str = ""
 
 
 class Recorder:
@@ -199,7 +163,7 @@ class Recorder:
                     log.debug("ignoring key outside the session graph: %s", key)
                 return
             q = self._queues.setdefault(key, queue.Queue(self.cfg.queue_size))
-        if not self._recording and not _is_calibration(key):
+        if not self._recording and not is_calibration(key):
             return
         try:
             q.put_nowait(rx)
@@ -281,7 +245,8 @@ class Recorder:
             return self._error(f"cannot create {part}: {exc}")
         with self._drop_lock:
             self._drops.clear()
-        ep = _Episode(req, writer, start_ns)
+        ep = _Episode.start(req, str(writer.path), start_ns)
+        ep.writer = writer
         try:
             writer.add_metadata(START_RECORD, start_record(ep.meta))
         except OSError as exc:
@@ -292,7 +257,7 @@ class Recorder:
         for key, (rx, msg) in sorted(self._calibration.items()):
             self._write(ep, key, rx, msg)
         # Stale ones are written for completeness, but the camera may be gone: expect no frames from it.
-        ep.cameras = {_camera_of(key) for key, (rx, _) in self._calibration.items()
+        ep.cameras = {camera_of(key) for key, (rx, _) in self._calibration.items()
                       if start_ns - rx.receive_ns <= _FRESH_CALIBRATION_NS}
         log.info("episode %s started: task %s seed %d rig %s at %.1f Hz -> %s", req.episode_id, req.task, req.seed,
                  req.rig, req.control_hz, writer.part_path)
@@ -411,11 +376,9 @@ class Recorder:
             if ep is None or stamp < ep.start_ns:
                 continue
             if not alive:
-                ep.left.add(service)
-                ep.note(f"service {service} lost liveliness mid-episode")
+                ep.service_left(service)
                 log.warning("episode %s: service %s lost liveliness", ep.meta.episode_id, service)
-            elif service in ep.left:
-                ep.note(f"service {service} restarted mid-episode")
+            elif ep.service_back(service):
                 log.warning("episode %s: service %s is back", ep.meta.episode_id, service)
 
     def _drain(self, per_queue: int | None) -> int:
@@ -444,7 +407,7 @@ class Recorder:
         except MalformedPayload as exc:
             self._malformed(key, rx, str(exc))
             return
-        calibration = _is_calibration(key)
+        calibration = is_calibration(key)
         if calibration:
             self._calibration[key] = (rx, msg)
         ep = self._episode
@@ -472,75 +435,18 @@ class Recorder:
             ep.note(ep.error)
             log.error("episode %s: %s; writing stops, the partial file is kept", ep.meta.episode_id, ep.error)
             return
-        ep.written[key] += 1
-        if key.endswith("/image") or _is_calibration(key):
-            ep.cameras.add(_camera_of(key))
-        header = header_of(msg)
-        if header is not None:
-            last = ep.last_seq.get(key)
-            if last is not None and header.seq != last + 1:
-                ep.gaps[key] += 1
-                if header.seq <= last:
-                    ep.resets[key] += 1
-                    log.warning("episode %s: sequence on %s went back from %d to %d (publisher restart?)",
-                                ep.meta.episode_id, key, last, header.seq)
-                else:
-                    ep.missing[key] += header.seq - last - 1
-            ep.last_seq[key] = header.seq
-        if key == APPLIED_ACTION.key:
-            ep.stale += bool(msg.stale)
-            ep.clipped += bool(len(msg.limits))
-        if key == ROBOT_STATE.key:
-            if ep.state_n == 0:
-                ep.state_first = stamp
-            ep.state_n += 1
-            ep.state_last = stamp
+        last = ep.count(key, msg, stamp)
+        if last is not None:
+            log.warning("episode %s: sequence on %s went back from %d (publisher restart?)", ep.meta.episode_id,
+                        key, last)
 
     # -- metadata and closing ---------------------------------------------------------------
     def _meta(self, ep: _Episode, ticks: int = 0, success: bool = False) -> EpisodeMeta:
         """The episode's facts so far, with every reason it is suspect in ``flags``."""
-        meta = EpisodeMeta()
-        meta.CopyFrom(ep.meta)
-        meta.success = success
-        states = ep.written[ROBOT_STATE.key]
-        meta.ticks = ticks or states
-        meta.achieved_hz = ep.achieved_hz
-        for cam in sorted(ep.cameras):
-            meta.frames[cam] = ep.written[f"camera/{cam}/image"]
         with self._drop_lock:
-            drops = {k: v for k, v in self._drops.items() if v}
-        meta.drops.update(drops)
-        meta.malformed.update({k: v for k, v in ep.malformed.items() if v})
-        meta.gaps.update({k: v for k, v in ep.gaps.items() if v})
-        meta.stale_ticks = ep.stale
-        meta.clipped_ticks = ep.clipped
-        meta.end_ns = now_ns()
-
-        flags = list(ep.events)
-        floor = self.cfg.min_rate_fraction * ep.meta.control_hz
-        if ep.meta.control_hz > 0 and meta.achieved_hz < floor:
-            flags.append(f"low rate: robot state at {meta.achieved_hz:.2f} Hz < {self.cfg.min_rate_fraction:g} x "
-                         f"{ep.meta.control_hz:g} Hz")
-        if drops:
-            flags.append(f"drops: recorder queues overflowed ({_fmt(drops)})")
-        if meta.malformed:
-            flags.append(f"malformed payloads ({_fmt(dict(meta.malformed))})")
-        for key, n in sorted(ep.resets.items()):
-            flags.append(f"publisher restart on {key}: sequence went back {n}x")
-        unexplained = {k: m for k, m in ep.missing.items() if m > drops.get(k, 0)}
-        if unexplained:
-            flags.append(f"sequence gaps: messages lost upstream ({_fmt(unexplained)})")
-        if ep.stale:
-            flags.append(f"stale: {ep.stale} ticks held still without a fresh command (teleop late or missing)")
-        if ep.clipped:
-            flags.append(f"clipped: {ep.clipped} ticks limited by the safety layer (speed, workspace or gripper range)")
-        if ticks and states != ticks:
-            flags.append(f"robot/state: {states} states for {ticks} ticks")
-        for cam, n in sorted(meta.frames.items()):
-            if n != meta.ticks:
-                flags.append(f"camera {cam}: {n} frames for {meta.ticks} ticks")
-        meta.flags.extend(flags)
-        return meta
+            drops = dict(self._drops)
+        return episode_meta(ep, drops=drops, ticks=ticks, success=success, end_ns=now_ns(),
+                            min_rate_fraction=self.cfg.min_rate_fraction)
 
     def _close_episode(self, success: bool, ticks: int) -> EpisodeReply:
         """Write what is queued, the final metadata, and close the file."""
@@ -569,7 +475,7 @@ class Recorder:
         self._last_meta = meta
         level = logging.WARNING if meta.flags else logging.INFO
         log.log(level, "episode %s closed: %d states, %.2f Hz, frames {%s}%s -> %s", meta.episode_id,
-                ep.written[ROBOT_STATE.key], meta.achieved_hz, _fmt(dict(meta.frames)),
+                ep.written[ROBOT_STATE.key], meta.achieved_hz, fmt_counts(dict(meta.frames)),
                 "".join(f"\n  flag: {f}" for f in meta.flags), ep.writer.path)
         try:
             self._publisher.put(meta)

@@ -54,11 +54,6 @@ def capture_ns(msg: Message) -> int:
     return 0
 
 
-def header_of(msg: Message) -> Header | None:
-    header = getattr(msg, "header", None)
-    return header if isinstance(header, Header) else None
-
-
 def check_jpeg(data: bytes, decode: bool = True) -> None:
     """Raise ``MalformedPayload`` unless ``data`` is one complete JPEG (SOI ... EOI)."""
     if len(data) < 4 or data[:2] != b"\xff\xd8":

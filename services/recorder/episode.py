@@ -1,0 +1,166 @@
+"""The recorder's episode rules, pure: what an episode counts while it is written, and why it
+is flagged when it closes. No files, threads or clocks in here; the recorder feeds it.
+
+Counted per topic key: messages written, malformed payloads, sequence gaps (a forward jump
+counts the messages skipped; a jump back is a publisher restart), plus the robot-state
+capture times (for the achieved rate), stale ticks (the robot held still for want of a command)
+and clipped ticks (the safety layer changed the command).
+
+Flags, in this order: events (liveliness losses and restarts, write errors) as they happened;
+``low rate`` when the robot state arrived below ``min_rate_fraction`` of the control rate;
+recorder queue drops; malformed payloads; publisher restarts; sequence gaps not explained by
+our own drops; stale ticks; clipped ticks; fewer robot states than the ticks the source says
+it published; a camera whose frame count differs from the tick count.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from dataclasses import dataclass, field
+
+from services.core.topics import APPLIED_ACTION, ROBOT_STATE
+from services.pb.common_pb2 import Header
+from services.pb.episode_pb2 import EpisodeMeta, EpisodeRequest
+
+
+def camera_of(key: str) -> str:
+    return key.split("/")[1]
+
+
+def is_calibration(key: str) -> bool:
+    return key.startswith("camera/") and (key.endswith("/calibration") or key.endswith("/pose"))
+
+
+def fmt_counts(counts: dict[str, int]) -> str:
+    return ", ".join(f"{k} {v}" for k, v in sorted(counts.items()))
+
+
+@dataclass
+class EpisodeCounts:
+    """Counters of one open episode."""
+
+    meta: EpisodeMeta  # what START said: id, task, seed, rig, control rate, start, path
+    written: Counter = field(default_factory=Counter)  # key -> messages written
+    malformed: Counter = field(default_factory=Counter)  # key -> payloads refused
+    gaps: Counter = field(default_factory=Counter)  # key -> sequence discontinuities
+    resets: Counter = field(default_factory=Counter)  # key -> times the sequence went back (publisher restart)
+    missing: Counter = field(default_factory=Counter)  # key -> messages skipped by forward sequence jumps
+    last_seq: dict[str, int] = field(default_factory=dict)
+    cameras: set[str] = field(default_factory=set)
+    stale: int = 0  # applied actions that were a hold for want of a command
+    clipped: int = 0  # applied actions the safety layer changed
+    state_n: int = 0
+    state_first: int = 0
+    state_last: int = 0
+    events: list[str] = field(default_factory=list)  # flags from liveliness and errors, in order
+    left: set[str] = field(default_factory=set)  # services that lost liveliness during the episode
+
+    @classmethod
+    def start(cls, req: EpisodeRequest, path: str, start_ns: int) -> "EpisodeCounts":
+        return cls(EpisodeMeta(episode_id=req.episode_id, task=req.task, seed=req.seed, rig=req.rig,
+                               control_hz=req.control_hz, start_ns=start_ns, path=path))
+
+    @property
+    def start_ns(self) -> int:
+        return int(self.meta.start_ns)
+
+    def note(self, flag: str) -> None:
+        if flag not in self.events:
+            self.events.append(flag)
+
+    def service_left(self, service: str) -> None:
+        self.left.add(service)
+        self.note(f"service {service} lost liveliness mid-episode")
+
+    def service_back(self, service: str) -> bool:
+        """Note a service's return; False if it had not left during the episode."""
+        if service not in self.left:
+            return False
+        self.note(f"service {service} restarted mid-episode")
+        return True
+
+    @property
+    def achieved_hz(self) -> float:
+        if self.state_n < 2 or self.state_last <= self.state_first:
+            return 0.0
+        return (self.state_n - 1) * 1e9 / (self.state_last - self.state_first)
+
+    def count(self, key: str, msg, stamp_ns: int) -> int | None:
+        """Count one written message of ``key``; returns the previous sequence if this one went back."""
+        self.written[key] += 1
+        if key.endswith("/image") or is_calibration(key):
+            self.cameras.add(camera_of(key))
+        went_back = None
+        header = getattr(msg, "header", None)
+        if isinstance(header, Header):
+            last = self.last_seq.get(key)
+            if last is not None and header.seq != last + 1:
+                self.gaps[key] += 1
+                if header.seq <= last:
+                    self.resets[key] += 1
+                    went_back = last
+                else:
+                    self.missing[key] += header.seq - last - 1
+            self.last_seq[key] = header.seq
+        if key == APPLIED_ACTION.key:
+            self.stale += bool(msg.stale)
+            self.clipped += bool(len(msg.limits))
+        if key == ROBOT_STATE.key:
+            if self.state_n == 0:
+                self.state_first = stamp_ns
+            self.state_n += 1
+            self.state_last = stamp_ns
+        return went_back
+
+    def frames(self, camera: str) -> int:
+        return self.written[f"camera/{camera}/image"]
+
+
+def episode_meta(ep: EpisodeCounts, *, drops: dict[str, int], ticks: int, success: bool, end_ns: int,
+                 min_rate_fraction: float) -> EpisodeMeta:
+    """The episode's facts so far, with every reason it is suspect in ``flags``.
+
+    ``ticks``: the ticks the source says it published (0 while the episode is open);
+    ``drops``: samples the recorder's queues dropped, per key.
+    """
+    meta = EpisodeMeta()
+    meta.CopyFrom(ep.meta)
+    meta.success = success
+    states = ep.written[ROBOT_STATE.key]
+    meta.ticks = ticks or states
+    meta.achieved_hz = ep.achieved_hz
+    for cam in sorted(ep.cameras):
+        meta.frames[cam] = ep.frames(cam)
+    drops = {k: v for k, v in drops.items() if v}
+    meta.drops.update(drops)
+    meta.malformed.update({k: v for k, v in ep.malformed.items() if v})
+    meta.gaps.update({k: v for k, v in ep.gaps.items() if v})
+    meta.stale_ticks = ep.stale
+    meta.clipped_ticks = ep.clipped
+    meta.end_ns = end_ns
+
+    flags = list(ep.events)
+    hz = ep.meta.control_hz
+    floor = min_rate_fraction * hz
+    if hz > 0 and meta.achieved_hz < floor:
+        flags.append(f"low rate: robot state at {meta.achieved_hz:.2f} Hz < {min_rate_fraction:g} x {hz:g} Hz")
+    if drops:
+        flags.append(f"drops: recorder queues overflowed ({fmt_counts(drops)})")
+    if meta.malformed:
+        flags.append(f"malformed payloads ({fmt_counts(dict(meta.malformed))})")
+    for key, n in sorted(ep.resets.items()):
+        flags.append(f"publisher restart on {key}: sequence went back {n}x")
+    unexplained = {k: m for k, m in ep.missing.items() if m > drops.get(k, 0)}
+    if unexplained:
+        flags.append(f"sequence gaps: messages lost upstream ({fmt_counts(unexplained)})")
+    if ep.stale:
+        flags.append(f"stale: {ep.stale} ticks held still without a fresh command (teleop late or missing)")
+    if ep.clipped:
+        flags.append(f"clipped: {ep.clipped} ticks limited by the safety layer (speed, workspace or gripper range)")
+    if ticks and states != ticks:
+        flags.append(f"robot/state: {states} states for {ticks} ticks")
+    for cam, n in sorted(meta.frames.items()):
+        if n != meta.ticks:
+            flags.append(f"camera {cam}: {n} frames for {meta.ticks} ticks")
+    meta.flags.extend(flags)
+    return meta
