@@ -117,7 +117,7 @@ class SimService:
             self.loop.begin_episode(req.episode_id)
             self.cameras.publish_calibration(now_ns())
             log.info("reset task=%s seed=%d episode=%s", task, req.seed, req.episode_id)
-            return SimControlReply(ok=True, ticks=0, success=bool(self.world.success()))
+            return SimControlReply(ok=True, ticks=0, success=bool(self.world.success()), lockstep=not self.cfg.realtime)
         if req.command == SimCommand.SIM_COMMAND_RUN:
             self.running = True
             return SimControlReply(ok=True, ticks=self.loop.tick)

@@ -32,7 +32,7 @@ SIM_COMMAND_RUN: SimCommand
 SIM_COMMAND_PAUSE: SimCommand
 
 class EpisodeMeta(_message.Message):
-    __slots__ = ("episode_id", "task", "seed", "rig", "success", "control_hz", "achieved_hz", "ticks", "frames", "drops", "malformed", "flags", "start_ns", "end_ns", "path", "gaps", "stale_ticks", "clipped_ticks")
+    __slots__ = ("episode_id", "task", "seed", "rig", "success", "control_hz", "achieved_hz", "ticks", "frames", "drops", "malformed", "flags", "start_ns", "end_ns", "path", "gaps", "stale_ticks", "clipped_ticks", "lockstep")
     class FramesEntry(_message.Message):
         __slots__ = ("key", "value")
         KEY_FIELD_NUMBER: _ClassVar[int]
@@ -79,6 +79,7 @@ class EpisodeMeta(_message.Message):
     GAPS_FIELD_NUMBER: _ClassVar[int]
     STALE_TICKS_FIELD_NUMBER: _ClassVar[int]
     CLIPPED_TICKS_FIELD_NUMBER: _ClassVar[int]
+    LOCKSTEP_FIELD_NUMBER: _ClassVar[int]
     episode_id: str
     task: str
     seed: int
@@ -97,10 +98,11 @@ class EpisodeMeta(_message.Message):
     gaps: _containers.ScalarMap[str, int]
     stale_ticks: int
     clipped_ticks: int
-    def __init__(self, episode_id: _Optional[str] = ..., task: _Optional[str] = ..., seed: _Optional[int] = ..., rig: _Optional[str] = ..., success: _Optional[bool] = ..., control_hz: _Optional[float] = ..., achieved_hz: _Optional[float] = ..., ticks: _Optional[int] = ..., frames: _Optional[_Mapping[str, int]] = ..., drops: _Optional[_Mapping[str, int]] = ..., malformed: _Optional[_Mapping[str, int]] = ..., flags: _Optional[_Iterable[str]] = ..., start_ns: _Optional[int] = ..., end_ns: _Optional[int] = ..., path: _Optional[str] = ..., gaps: _Optional[_Mapping[str, int]] = ..., stale_ticks: _Optional[int] = ..., clipped_ticks: _Optional[int] = ...) -> None: ...
+    lockstep: bool
+    def __init__(self, episode_id: _Optional[str] = ..., task: _Optional[str] = ..., seed: _Optional[int] = ..., rig: _Optional[str] = ..., success: _Optional[bool] = ..., control_hz: _Optional[float] = ..., achieved_hz: _Optional[float] = ..., ticks: _Optional[int] = ..., frames: _Optional[_Mapping[str, int]] = ..., drops: _Optional[_Mapping[str, int]] = ..., malformed: _Optional[_Mapping[str, int]] = ..., flags: _Optional[_Iterable[str]] = ..., start_ns: _Optional[int] = ..., end_ns: _Optional[int] = ..., path: _Optional[str] = ..., gaps: _Optional[_Mapping[str, int]] = ..., stale_ticks: _Optional[int] = ..., clipped_ticks: _Optional[int] = ..., lockstep: _Optional[bool] = ...) -> None: ...
 
 class EpisodeRequest(_message.Message):
-    __slots__ = ("command", "episode_id", "task", "seed", "rig", "control_hz", "success", "ticks")
+    __slots__ = ("command", "episode_id", "task", "seed", "rig", "control_hz", "success", "ticks", "lockstep")
     COMMAND_FIELD_NUMBER: _ClassVar[int]
     EPISODE_ID_FIELD_NUMBER: _ClassVar[int]
     TASK_FIELD_NUMBER: _ClassVar[int]
@@ -109,6 +111,7 @@ class EpisodeRequest(_message.Message):
     CONTROL_HZ_FIELD_NUMBER: _ClassVar[int]
     SUCCESS_FIELD_NUMBER: _ClassVar[int]
     TICKS_FIELD_NUMBER: _ClassVar[int]
+    LOCKSTEP_FIELD_NUMBER: _ClassVar[int]
     command: EpisodeCommand
     episode_id: str
     task: str
@@ -117,7 +120,8 @@ class EpisodeRequest(_message.Message):
     control_hz: float
     success: bool
     ticks: int
-    def __init__(self, command: _Optional[_Union[EpisodeCommand, str]] = ..., episode_id: _Optional[str] = ..., task: _Optional[str] = ..., seed: _Optional[int] = ..., rig: _Optional[str] = ..., control_hz: _Optional[float] = ..., success: _Optional[bool] = ..., ticks: _Optional[int] = ...) -> None: ...
+    lockstep: bool
+    def __init__(self, command: _Optional[_Union[EpisodeCommand, str]] = ..., episode_id: _Optional[str] = ..., task: _Optional[str] = ..., seed: _Optional[int] = ..., rig: _Optional[str] = ..., control_hz: _Optional[float] = ..., success: _Optional[bool] = ..., ticks: _Optional[int] = ..., lockstep: _Optional[bool] = ...) -> None: ...
 
 class EpisodeReply(_message.Message):
     __slots__ = ("ok", "error", "recording", "meta")
@@ -144,13 +148,15 @@ class SimControlRequest(_message.Message):
     def __init__(self, command: _Optional[_Union[SimCommand, str]] = ..., task: _Optional[str] = ..., seed: _Optional[int] = ..., episode_id: _Optional[str] = ...) -> None: ...
 
 class SimControlReply(_message.Message):
-    __slots__ = ("ok", "error", "ticks", "success")
+    __slots__ = ("ok", "error", "ticks", "success", "lockstep")
     OK_FIELD_NUMBER: _ClassVar[int]
     ERROR_FIELD_NUMBER: _ClassVar[int]
     TICKS_FIELD_NUMBER: _ClassVar[int]
     SUCCESS_FIELD_NUMBER: _ClassVar[int]
+    LOCKSTEP_FIELD_NUMBER: _ClassVar[int]
     ok: bool
     error: str
     ticks: int
     success: bool
-    def __init__(self, ok: _Optional[bool] = ..., error: _Optional[str] = ..., ticks: _Optional[int] = ..., success: _Optional[bool] = ...) -> None: ...
+    lockstep: bool
+    def __init__(self, ok: _Optional[bool] = ..., error: _Optional[str] = ..., ticks: _Optional[int] = ..., success: _Optional[bool] = ..., lockstep: _Optional[bool] = ...) -> None: ...

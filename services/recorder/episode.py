@@ -7,7 +7,8 @@ capture times (for the achieved rate), stale ticks (the robot held still for wan
 and clipped ticks (the safety layer changed the command).
 
 Flags, in this order: events (liveliness losses and restarts, write errors) as they happened;
-``low rate`` when the robot state arrived below ``min_rate_fraction`` of the control rate;
+``low rate`` when the robot state arrived below ``min_rate_fraction`` of the control rate (real
+time only: a lockstep session runs as fast as the machine goes, so its rate says nothing);
 recorder queue drops; malformed payloads; publisher restarts; sequence gaps not explained by
 our own drops; stale ticks; clipped ticks; fewer robot states than the ticks the source says
 it published; a camera whose frame count differs from the tick count.
@@ -39,7 +40,7 @@ def fmt_counts(counts: dict[str, int]) -> str:
 class EpisodeCounts:
     """Counters of one open episode."""
 
-    meta: EpisodeMeta  # what START said: id, task, seed, rig, control rate, start, path
+    meta: EpisodeMeta  # what START said: id, task, seed, rig, control rate, lockstep, start, path
     written: Counter = field(default_factory=Counter)  # key -> messages written
     malformed: Counter = field(default_factory=Counter)  # key -> payloads refused
     gaps: Counter = field(default_factory=Counter)  # key -> sequence discontinuities
@@ -58,7 +59,7 @@ class EpisodeCounts:
     @classmethod
     def start(cls, req: EpisodeRequest, path: str, start_ns: int) -> "EpisodeCounts":
         return cls(EpisodeMeta(episode_id=req.episode_id, task=req.task, seed=req.seed, rig=req.rig,
-                               control_hz=req.control_hz, start_ns=start_ns, path=path))
+                               control_hz=req.control_hz, lockstep=req.lockstep, start_ns=start_ns, path=path))
 
     @property
     def start_ns(self) -> int:
@@ -142,7 +143,7 @@ def episode_meta(ep: EpisodeCounts, *, drops: dict[str, int], ticks: int, succes
     flags = list(ep.events)
     hz = ep.meta.control_hz
     floor = min_rate_fraction * hz
-    if hz > 0 and meta.achieved_hz < floor:
+    if hz > 0 and not ep.meta.lockstep and meta.achieved_hz < floor:
         flags.append(f"low rate: robot state at {meta.achieved_hz:.2f} Hz < {min_rate_fraction:g} x {hz:g} Hz")
     if drops:
         flags.append(f"drops: recorder queues overflowed ({fmt_counts(drops)})")

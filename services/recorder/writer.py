@@ -68,6 +68,7 @@ def meta_to_record(meta: EpisodeMeta) -> dict[str, str]:
         "rig": meta.rig,
         "success": "true" if meta.success else "false",
         "control_hz": repr(float(meta.control_hz)),
+        "lockstep": "true" if meta.lockstep else "false",
         "achieved_hz": repr(float(meta.achieved_hz)),
         "ticks": str(meta.ticks),
         "stale_ticks": str(meta.stale_ticks),
@@ -90,8 +91,9 @@ def record_to_dict(record: Mapping[str, str]) -> dict:
     for key in ("control_hz", "achieved_hz"):
         if key in out:
             out[key] = float(out[key])
-    if "success" in out:
-        out["success"] = out["success"] == "true"
+    for key in ("success", "lockstep"):
+        if key in out:
+            out[key] = out[key] == "true"
     for key in (*_MAP_FIELDS, "flags"):
         if key in out:
             out[key] = json.loads(out[key])
@@ -105,6 +107,7 @@ def start_record(meta: EpisodeMeta) -> dict[str, str]:
         "seed": str(meta.seed),
         "rig": meta.rig,
         "control_hz": repr(float(meta.control_hz)),
+        "lockstep": "true" if meta.lockstep else "false",
         "start_ns": str(meta.start_ns),
     }
 
@@ -116,6 +119,7 @@ def meta_from_start_record(record: Mapping[str, str]) -> EpisodeMeta:
         seed=int(record.get("seed", "0")),
         rig=record.get("rig", ""),
         control_hz=float(record.get("control_hz", "0")),
+        lockstep=record.get("lockstep") == "true",
         start_ns=int(record.get("start_ns", "0")),
     )
 

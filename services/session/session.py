@@ -141,9 +141,9 @@ class Session:
         episode_id = f"{self.cfg.task}-{self.cfg.rig}-s{seed:05d}-{stamp}"
         self._watch(episode_id)
         t0 = time.monotonic()
-        self._sim(SimCommand.SIM_COMMAND_RESET, task=self.cfg.task, seed=seed, episode_id=episode_id)
+        reset = self._sim(SimCommand.SIM_COMMAND_RESET, task=self.cfg.task, seed=seed, episode_id=episode_id)
         self._recorder(EpisodeCommand.EPISODE_COMMAND_START, episode_id=episode_id, task=self.cfg.task,
-                       seed=seed, rig=self.cfg.rig, control_hz=self.cfg.control_hz)
+                       seed=seed, rig=self.cfg.rig, control_hz=self.cfg.control_hz, lockstep=reset.lockstep)
         try:
             self._sim(SimCommand.SIM_COMMAND_RUN)
             self._wait_done(self.cfg.tick_limit())

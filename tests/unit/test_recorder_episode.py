@@ -14,8 +14,8 @@ T0 = 1_700_000_000_000_000_000
 PERIOD = 50_000_000  # 20 Hz
 
 
-def opened(control_hz: float = 20.0) -> EpisodeCounts:
-    req = EpisodeRequest(episode_id="e1", task="lift", seed=4, rig="five15", control_hz=control_hz)
+def opened(control_hz: float = 20.0, lockstep: bool = False) -> EpisodeCounts:
+    req = EpisodeRequest(episode_id="e1", task="lift", seed=4, rig="five15", control_hz=control_hz, lockstep=lockstep)
     return EpisodeCounts.start(req, "/data/e1.mcap", T0)
 
 
@@ -51,6 +51,14 @@ def test_low_rate_is_flagged_below_the_fraction():
     feed(ep, range(10), period=2 * PERIOD)  # 10 Hz for a 20 Hz loop
     assert list(meta(ep, ticks=10).flags) == ["low rate: robot state at 10.00 Hz < 0.9 x 20 Hz"]
     assert list(meta(ep, ticks=10, fraction=0.4).flags) == []
+
+
+def test_a_lockstep_episode_is_never_rate_flagged():
+    # --fast: the sim ticks as fast as the teleop answers; its rate is the machine's, not a fault.
+    ep = opened(lockstep=True)
+    feed(ep, range(10), period=4 * PERIOD)  # 5 Hz
+    m = meta(ep, ticks=10)
+    assert m.lockstep and list(m.flags) == []
 
 
 def test_stale_and_clipped_ticks_are_counted_and_flagged():

@@ -180,7 +180,7 @@ def test_read_episode_gives_typed_metadata_and_decoded_messages(tmp_path):
     ep = read_episode(path)
     assert ep.metadata == {
         "episode_id": "ep2", "task": "lift", "seed": 7, "rig": "five15", "success": True, "control_hz": 50.0,
-        "achieved_hz": 50.0, "ticks": 12, "stale_ticks": 0, "clipped_ticks": 0, "frames": {"F": 12}, "drops": {}, "malformed": {},
+        "achieved_hz": 50.0, "lockstep": False, "ticks": 12, "stale_ticks": 0, "clipped_ticks": 0, "frames": {"F": 12}, "drops": {}, "malformed": {},
         "gaps": {}, "flags": ["camera F: example flag"], "start_ns": T0, "end_ns": meta.end_ns,
     }
     assert ep.meta == meta and ep.cameras == ["F"] and ep.flags == ["camera F: example flag"]
