@@ -1,7 +1,7 @@
 """What every benchmark shares: the machine description and the RESULTS.md row.
 
-Each benchmark prints exactly one JSON line on stdout and appends it, with the machine and
-the date, to bench/RESULTS.md.
+Each benchmark prints exactly one JSON line on stdout and appends it, with the machine, the
+date and the load average (1/5/15 min, at the end of the run), to bench/RESULTS.md.
 """
 
 from __future__ import annotations
@@ -39,11 +39,12 @@ def machine() -> str:
 def report(name: str, result: dict) -> dict:
     """Print the JSON line and append it to RESULTS.md; returns the full record."""
     record = {"bench": name, "date": datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
-              "machine": machine(), **result}
+              "machine": machine(), "loadavg": [round(x, 2) for x in os.getloadavg()], **result}
     line = json.dumps(record, sort_keys=False)
     print(line, flush=True)
     if not RESULTS.exists():
         RESULTS.write_text(HEADER)
     with RESULTS.open("a") as fh:
-        fh.write(f"- `{name}` {record['date']} on {record['machine']}:\n  `{json.dumps(result)}`\n")
+        fh.write(f"- `{name}` {record['date']} on {record['machine']}, load {record['loadavg']}:\n"
+                 f"  `{json.dumps(result)}`\n")
     return record

@@ -18,7 +18,6 @@ import math
 from abc import ABC, abstractmethod
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from sim.tasks import (
     CAN_HALF_HEIGHT,
@@ -27,10 +26,16 @@ from sim.tasks import (
     NUT_HALF_THICK,
     PEG_HEIGHT,
     TASKS,
-    quat_yaw,
 )
 from services.core.robot_types import ObjectPose, RobotSnapshot
-from services.core.geometry import clip_norm
+from services.core.geometry import (
+    clip_norm,
+    matrix_to_rotvec,
+    nearest_yaw,
+    quat_wxyz_to_matrix,
+    quat_yaw,
+    rot_z,
+)
 
 Action = tuple[np.ndarray, np.ndarray, float]
 
@@ -39,31 +44,6 @@ SPEED = 0.02  # m per tick in free space (0.4 m/s at 20 Hz)
 SLOW = 0.01  # m per tick near contact
 MAX_ROT = 0.1  # rad per tick
 R_DOWN = np.diag([1.0, -1.0, -1.0])  # EEF pointing down at yaw 0 (sim.scene.R_DOWN)
-
-
-def quat_to_mat(q: np.ndarray) -> np.ndarray:
-    """(w, x, y, z) quaternion -> rotation matrix."""
-    return Rotation.from_quat(np.asarray(q)[[1, 2, 3, 0]]).as_matrix()
-
-
-def rot_log(R: np.ndarray) -> np.ndarray:
-    """Axis-angle vector of a rotation matrix."""
-    return Rotation.from_matrix(R).as_rotvec()
-
-
-def rot_z(yaw: float) -> np.ndarray:
-    c, s = math.cos(yaw), math.sin(yaw)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
-def eef_yaw(robot: RobotSnapshot) -> float:
-    R = quat_to_mat(robot.eef_quat_wxyz)
-    return math.atan2(R[1, 0], R[0, 0])
-
-
-def nearest_yaw(target: float, current: float, period: float) -> float:
-    """The angle equal to ``target`` modulo ``period`` closest to ``current``."""
-    return current + (target - current + period / 2) % period - period / 2
 
 
 class Expert(ABC):
@@ -101,9 +81,9 @@ class _Scripted(Expert):
         self, robot: RobotSnapshot, goal: np.ndarray, gripper: float, speed: float = SPEED
     ) -> tuple[Action, float, float]:
         """Action towards (goal, pointing down at self.yaw) and the remaining (pos, rot) errors."""
-        yaw = eef_yaw(robot) if self.yaw is None else self.yaw
+        yaw = quat_yaw(robot.eef_quat_wxyz) if self.yaw is None else self.yaw
         err_p = np.asarray(goal, dtype=np.float64) - robot.eef_pos
-        err_r = rot_log(rot_z(yaw) @ R_DOWN @ quat_to_mat(robot.eef_quat_wxyz).T)
+        err_r = matrix_to_rotvec(rot_z(yaw) @ R_DOWN @ quat_wxyz_to_matrix(robot.eef_quat_wxyz).T)
         dp = clip_norm(GAIN * err_p, speed)
         drot = clip_norm(GAIN * err_r, MAX_ROT)
         return (dp, drot, float(gripper)), float(np.linalg.norm(err_p)), float(np.linalg.norm(err_r))
@@ -150,7 +130,7 @@ class LiftExpert(_Scripted):
             return self._recover(robot, CUBE_HALF + self.hover)
         if self.yaw is None:
             # Fingers close along the EEF y axis: any yaw equal to a cube face's modulo 90 deg.
-            self.yaw = nearest_yaw(quat_yaw(cube.quat_wxyz), eef_yaw(robot), math.pi / 2)
+            self.yaw = nearest_yaw(quat_yaw(cube.quat_wxyz), quat_yaw(robot.eef_quat_wxyz), math.pi / 2)
         if self.phase == "approach":
             action, ep, er = self._move(robot, cube.pos + [0.0, 0.0, self.hover], 0.0)
             if ep < 0.01 and er < 0.05:
@@ -188,7 +168,7 @@ class CanExpert(_Scripted):
         if self.phase == "recover":
             return self._recover(robot, self.hover)
         if self.yaw is None:
-            self.yaw = eef_yaw(robot)
+            self.yaw = quat_yaw(robot.eef_quat_wxyz)
         if self.phase == "approach":
             action, ep, er = self._move(robot, np.array([can.pos[0], can.pos[1], self.hover]), 0.0)
             if ep < 0.01 and er < 0.05:
@@ -244,11 +224,11 @@ class SquareExpert(_Scripted):
         nut, peg = objects["nut"], objects["peg"]
         if self.phase == "recover":
             return self._recover(robot, self.hover + NUT_HALF_THICK)
-        R_nut = quat_to_mat(nut.quat_wxyz)
+        R_nut = quat_wxyz_to_matrix(nut.quat_wxyz)
         handle = nut.pos + R_nut @ np.array([NUT_GRASP_OFFSET, 0.0, 0.0])
         if self.yaw is None:
             # Fingers close across the handle: EEF yaw equal to the nut's modulo 180 deg.
-            self.yaw = nearest_yaw(quat_yaw(nut.quat_wxyz), eef_yaw(robot), math.pi)
+            self.yaw = nearest_yaw(quat_yaw(nut.quat_wxyz), quat_yaw(robot.eef_quat_wxyz), math.pi)
         grip_z = max(handle[2], 0.015)
         if self.phase == "approach":
             action, ep, er = self._move(robot, np.array([handle[0], handle[1], grip_z + self.hover]), 0.0)

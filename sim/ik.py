@@ -18,14 +18,7 @@ from dataclasses import dataclass  # noqa: E402
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
-
-def rotation_error(R_target: np.ndarray, R: np.ndarray) -> np.ndarray:
-    """Axis-angle vector (world frame) of R_target @ R.T: the rotation that takes R to R_target."""
-    quat = np.empty(4)
-    mujoco.mju_mat2Quat(quat, (R_target @ R.T).reshape(-1))
-    vel = np.empty(3)
-    mujoco.mju_quat2Vel(vel, quat, 1.0)
-    return vel
+from services.core.geometry import rotation_error  # noqa: E402
 
 
 @dataclass(frozen=True)

@@ -21,6 +21,7 @@ from typing import Mapping
 
 import numpy as np
 
+from services.core.geometry import yaw_quat
 from services.core.robot_types import ObjectPose
 
 TASKS = ("lift", "can", "square")
@@ -45,17 +46,6 @@ NUT_GRASP_OFFSET = NUT_HOLE_HALF + NUT_RIM + NUT_HANDLE_LEN / 2  # handle centre
 PEG_CENTER = (0.5, 0.15)
 PEG_HALF = 0.015
 PEG_HEIGHT = 0.1
-
-
-def yaw_quat(yaw: float) -> np.ndarray:
-    """wxyz quaternion of a rotation by ``yaw`` about world z."""
-    return np.array([math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2)])
-
-
-def quat_yaw(quat_wxyz: np.ndarray) -> float:
-    """Heading of the body's x axis in the xy plane (rad)."""
-    w, x, y, z = quat_wxyz
-    return math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
 
 
 class Task(ABC):

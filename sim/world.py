@@ -28,9 +28,16 @@ import numbers  # noqa: E402
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
+from services.core.geometry import (  # noqa: E402
+    clip_norm,
+    matrix_to_quat_wxyz,
+    orthonormalize,
+    rotation_error,
+    rotvec_to_matrix,
+)
 from services.core.rig import Rig  # noqa: E402
 from services.core.robot_types import ObjectPose, RobotSnapshot  # noqa: E402
-from sim.ik import SiteIk, rotation_error  # noqa: E402
+from sim.ik import SiteIk  # noqa: E402
 from sim.scene import (  # noqa: E402
     ARM_JOINTS,
     EEF_SITE,
@@ -70,23 +77,6 @@ def _scalar(name: str, value) -> float:
     if arr.size != 1 or not np.isfinite(arr).all():
         raise ValueError(f"{name} must be one finite number, got {value!r}")
     return float(arr.reshape(()))
-
-
-def _rotvec_to_mat(v: np.ndarray) -> np.ndarray:
-    angle = float(np.linalg.norm(v))
-    if angle < 1e-12:
-        return np.eye(3)
-    quat = np.empty(4)
-    mujoco.mju_axisAngle2Quat(quat, v / angle, angle)
-    mat = np.empty(9)
-    mujoco.mju_quat2Mat(mat, quat)
-    return mat.reshape(3, 3)
-
-
-def clip_norm(v: np.ndarray, limit: float) -> np.ndarray:
-    """``v`` scaled down to length ``limit`` if it is longer."""
-    n = float(np.linalg.norm(v))
-    return v * (limit / n) if n > limit else v
 
 
 def _check_seed(seed) -> int:
@@ -187,15 +177,11 @@ class SimWorld:
         eef_pos = d.site_xpos[self._site].copy()
         eef_R = d.site_xmat[self._site].reshape(3, 3).copy()
         self._target_pos = eef_pos + clip_norm(self._target_pos + dp - eef_pos, MAX_LEAD)
-        R = _rotvec_to_mat(drot) @ self._target_R
+        R = rotvec_to_matrix(drot) @ self._target_R
         lead = rotation_error(R, eef_R)
         if np.linalg.norm(lead) > MAX_LEAD_ROT:
-            R = _rotvec_to_mat(clip_norm(lead, MAX_LEAD_ROT)) @ eef_R
-        quat = np.empty(4)
-        mujoco.mju_mat2Quat(quat, R.reshape(-1))  # back through a unit quaternion: no drift from
-        mat = np.empty(9)  # orthonormality over thousands of compositions
-        mujoco.mju_quat2Mat(mat, quat)
-        self._target_R = mat.reshape(3, 3)
+            R = rotvec_to_matrix(clip_norm(lead, MAX_LEAD_ROT)) @ eef_R
+        self._target_R = orthonormalize(R)  # no drift from orthonormality over thousands of compositions
 
         q_prev, f_prev = self._q_cmd, self._finger_cmd
         self._q_cmd = self._ik.solve(q_prev, self._target_pos, self._target_R).q
@@ -213,8 +199,7 @@ class SimWorld:
 
     def robot(self) -> RobotSnapshot:
         d = self.data
-        quat = np.empty(4)
-        mujoco.mju_mat2Quat(quat, d.site_xmat[self._site])
+        quat = matrix_to_quat_wxyz(d.site_xmat[self._site].reshape(3, 3))
         if quat @ _QUAT_DOWN < 0:
             quat = -quat
         fingers = float(np.mean(d.qpos[self._finger_qadr]))

@@ -30,7 +30,7 @@ from __future__ import annotations
 from typing import Literal
 
 import numpy as np
-from scipy.spatial.transform import Rotation
+from services.core.geometry import rot6d, rotvec_to_matrix
 
 ActionSpace = Literal["base", "eef", "camera"]
 StateFrame = Literal["base", "camera"]
@@ -120,25 +120,8 @@ def eef_chunk_to_base(actions_eef: np.ndarray, R0: np.ndarray) -> np.ndarray:
     out = np.empty_like(a)
     for k in range(a.shape[0]):
         out[k] = rotate_action(a[k], R)
-        R = R @ Rotation.from_rotvec(a[k, 3:6]).as_matrix()
+        R = R @ rotvec_to_matrix(a[k, 3:6])
     return out
-
-
-def rot6d(R: np.ndarray) -> np.ndarray:
-    """(..., 3, 3) -> (..., 6): the first two columns, a continuous rotation representation."""
-    R = np.asarray(R)
-    return np.concatenate([R[..., :, 0], R[..., :, 1]], axis=-1)
-
-
-def rot6d_to_matrix(d6: np.ndarray) -> np.ndarray:
-    """(..., 6) -> (..., 3, 3) by Gram-Schmidt (exact inverse of ``rot6d`` on rotations)."""
-    d6 = np.asarray(d6, dtype=np.float64)
-    a, b = d6[..., 0:3], d6[..., 3:6]
-    x = a / np.linalg.norm(a, axis=-1, keepdims=True)
-    b = b - np.sum(x * b, axis=-1, keepdims=True) * x
-    y = b / np.linalg.norm(b, axis=-1, keepdims=True)
-    z = np.cross(x, y)
-    return np.stack([x, y, z], axis=-1)
 
 
 def state_vector(
@@ -166,9 +149,3 @@ def state_vector(
         raise ValueError(f"unknown state frame {frame!r}")
     g = np.asarray(gripper, dtype=np.float64).reshape(-1, 1)
     return np.concatenate([pos, rot6d(rot), g], axis=-1)
-
-
-def quat_wxyz_to_matrix(q_wxyz: np.ndarray) -> np.ndarray:
-    """(N, 4) w-first quaternions (as RobotState publishes them) -> (N, 3, 3)."""
-    q = np.asarray(q_wxyz, dtype=np.float64)
-    return Rotation.from_quat(q[..., [1, 2, 3, 0]]).as_matrix()

@@ -6,7 +6,9 @@ Conventions (the ones every message and file uses):
 - a rotation vector (axis-angle) ``r`` has the rotation angle as its length: ``Rot(r)``;
 - rotations compose on the left in the base frame: ``R_next = Rot(drot) @ R``;
 - ``rot6d`` is the first two columns of a rotation matrix (Zhou et al.), continuous everywhere.
-Everything takes a single value or a leading batch dimension and is numpy only.
+Everything takes a single value or a leading batch dimension and is numpy only. Matrices handed
+in are rotations (up to rounding), so scipy's orthogonality check is skipped (``assume_valid``): it
+costs 6x the conversion itself, and the IK calls ``rotation_error`` every iteration.
 """
 
 from __future__ import annotations
@@ -23,8 +25,8 @@ def quat_wxyz_to_matrix(q_wxyz: np.ndarray) -> np.ndarray:
 
 
 def matrix_to_quat_wxyz(R: np.ndarray) -> np.ndarray:
-    """(..., 3, 3) -> (..., 4) unit w-first quaternions (either sign: q and -q are one rotation)."""
-    return Rotation.from_matrix(np.asarray(R, dtype=np.float64)).as_quat(scalar_first=True)
+    """(..., 3, 3) rotations -> (..., 4) unit w-first quaternions (either sign: q and -q are one rotation)."""
+    return Rotation.from_matrix(np.asarray(R, dtype=np.float64), assume_valid=True).as_quat(scalar_first=True)
 
 
 def rotvec_to_matrix(r: np.ndarray) -> np.ndarray:
@@ -33,13 +35,13 @@ def rotvec_to_matrix(r: np.ndarray) -> np.ndarray:
 
 
 def matrix_to_rotvec(R: np.ndarray) -> np.ndarray:
-    """(..., 3, 3) -> (..., 3) axis-angle vectors (angle in [0, pi])."""
-    return Rotation.from_matrix(np.asarray(R, dtype=np.float64)).as_rotvec()
+    """(..., 3, 3) rotations -> (..., 3) axis-angle vectors (angle in [0, pi])."""
+    return Rotation.from_matrix(np.asarray(R, dtype=np.float64), assume_valid=True).as_rotvec()
 
 
 def orthonormalize(R: np.ndarray) -> np.ndarray:
-    """The rotation nearest to ``R`` (through a unit quaternion): stops drift over many compositions."""
-    return Rotation.from_matrix(np.asarray(R, dtype=np.float64)).as_matrix()
+    """A product of many rotations, back through a unit quaternion: stops drift from orthonormality."""
+    return Rotation.from_matrix(np.asarray(R, dtype=np.float64), assume_valid=True).as_matrix()
 
 
 def rotation_error(R_target: np.ndarray, R: np.ndarray) -> np.ndarray:

@@ -18,7 +18,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from services.core.action_spaces import rot6d_to_matrix
+from services.core.geometry import rot6d_to_matrix
 
 WHITE, CYAN, MAGENTA, YELLOW = (255, 255, 255), (0, 255, 255), (255, 0, 255), (255, 255, 0)
 AXES = ((255, 60, 60), (60, 255, 60), (80, 120, 255))

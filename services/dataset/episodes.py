@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from services.core import topics
-from services.core.action_spaces import quat_wxyz_to_matrix
+from services.core.geometry import quat_wxyz_to_matrix
 from services.core.rig import Camera
 from services.recorder.reader import EpisodeReadError, read_episode
 

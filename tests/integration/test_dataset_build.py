@@ -15,7 +15,8 @@ from scipy.spatial.transform import Rotation
 
 from services.cli import main as viewscale
 from services.core.rig import load_rig
-from services.core.action_spaces import from_space, rot6d_to_matrix
+from services.core.action_spaces import from_space
+from services.core.geometry import rot6d_to_matrix
 from services.dataset.build import BuildParams, build_dataset
 from services.dataset.store import DatasetError, DatasetStore
 from services.trainer.data import load_dataset, split_episodes

@@ -15,11 +15,10 @@ from services.core.action_spaces import (
     eef_chunk_to_base,
     from_space,
     resolve_state_frame,
-    rot6d,
-    rot6d_to_matrix,
     state_vector,
     to_space,
 )
+from services.core.geometry import rot6d, rot6d_to_matrix
 
 FAST = settings(max_examples=60, deadline=None)
 

@@ -12,7 +12,9 @@ import numpy as np
 import pytest
 
 from services.core.rig import load_rig
-from sim.experts import make_expert, quat_to_mat, rot_z
+from services.core.geometry import quat_wxyz_to_matrix as quat_to_mat
+from services.core.geometry import rot_z
+from sim.experts import make_expert
 from sim.ik import SiteIk
 from sim.scene import ARM_JOINTS, EEF_SITE, R_DOWN
 from services.core.robot_types import EefDelta
