@@ -1,7 +1,7 @@
 """Configuration: frozen pydantic models, loaded with one precedence rule.
 
-defaults (the model) < YAML file < environment (VIEWSCALE_SECTION__FIELD=value) < CLI overrides
-(``--set section.field=value``). Values from env and CLI are parsed as YAML scalars/flow values,
+defaults (the model) < a base layer (the trainer's preset) < YAML file < environment
+(VIEWSCALE_SECTION__FIELD=value) < CLI overrides (``--set section.field=value``). Values from env and CLI are parsed as YAML scalars/flow values,
 so ``--set bus.connect=[tcp/127.0.0.1:7447]`` and ``VIEWSCALE_CONTROL_HZ=20`` both work.
 """
 
@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Any, Iterable, Mapping, TypeVar
+from typing import Any, Callable, Iterable, Mapping, TypeVar
 
 import yaml
 from pydantic import BaseModel, ConfigDict, ValidationError
@@ -29,11 +29,11 @@ class ConfigError(ValueError):
     """A configuration could not be loaded; the message names the source and the field."""
 
 
-def _deep_merge(base: dict[str, Any], top: Mapping[str, Any]) -> dict[str, Any]:
+def deep_merge(base: dict[str, Any], top: Mapping[str, Any]) -> dict[str, Any]:
     out = dict(base)
     for key, value in top.items():
         if isinstance(value, Mapping) and isinstance(out.get(key), Mapping):
-            out[key] = _deep_merge(dict(out[key]), value)
+            out[key] = deep_merge(dict(out[key]), value)
         else:
             out[key] = value
     return out
@@ -63,7 +63,7 @@ def parse_overrides(items: Iterable[str]) -> dict[str, Any]:
         path = [p for p in key.strip().split(".") if p]
         if not path:
             raise ConfigError(f"override {item!r} has an empty key")
-        merged = _deep_merge(merged, _nest(path, _parse_value(raw)))
+        merged = deep_merge(merged, _nest(path, _parse_value(raw)))
     return merged
 
 
@@ -74,7 +74,7 @@ def env_overrides(environ: Mapping[str, str], prefix: str = ENV_PREFIX) -> dict[
             continue
         path = [p.lower() for p in name[len(prefix):].split("__") if p]
         if path:
-            merged = _deep_merge(merged, _nest(path, _parse_value(raw)))
+            merged = deep_merge(merged, _nest(path, _parse_value(raw)))
     return merged
 
 
@@ -91,23 +91,42 @@ def read_yaml(path: str | Path) -> dict[str, Any]:
     return data
 
 
+def validate_config(
+    model: type[M], data: Mapping[str, Any], base: Callable[[Mapping[str, Any]], dict[str, Any]] | None = None,
+    source: str = "",
+) -> M:
+    """Validate ``data`` as ``model``, over the base layer ``base(data)`` when given (a preset named
+    by the data itself); a ConfigError names the source and the field."""
+    if base is not None:
+        data = deep_merge(base(data), data)
+    try:
+        return model.model_validate(data)
+    except ValidationError as exc:
+        raise ConfigError(f"invalid {model.__name__} config{source}:\n{exc}") from exc
+
+
 def load_config(
     model: type[M],
     yaml_path: str | Path | None = None,
     overrides: Iterable[str] = (),
     environ: Mapping[str, str] | None = None,
     section: str | None = None,
+    base: Callable[[Mapping[str, Any]], dict[str, Any]] | None = None,
+    yaml_from_env: bool = True,
 ) -> M:
-    """Build ``model`` from defaults < YAML < env < CLI overrides.
+    """Build ``model`` from defaults < base < YAML < env < CLI overrides.
 
     ``section`` picks one top-level key of a shared YAML file (deploy/sim.yaml holds every
     service's section, plus shared top-level keys such as ``bus`` that any model with that field
     takes); env and CLI overrides are relative to that section. Environment keys
     only apply to fields the model has, so one environment can carry several services' settings.
+    ``base``: see ``validate_config``. ``yaml_from_env``: without ``yaml_path``, read the file
+    ``VIEWSCALE_CONFIG`` names (the services' shared file; the trainer's settings are not in it).
     """
     environ = os.environ if environ is None else environ
     data: dict[str, Any] = {}
-    yaml_path = yaml_path or environ.get(ENV_PREFIX + "CONFIG")
+    if yaml_path is None and yaml_from_env:
+        yaml_path = environ.get(ENV_PREFIX + "CONFIG")
     if yaml_path:
         raw = read_yaml(yaml_path)
         if section is not None:
@@ -116,14 +135,10 @@ def load_config(
                 raise ConfigError(f"section {section!r} of {yaml_path} must be a mapping")
             # Top-level keys the model also has (``bus``) are shared by every service's section.
             shared = {k: v for k, v in raw.items() if k in model.model_fields and k != section}
-            raw = _deep_merge(shared, body)
-        data = _deep_merge(data, raw)
+            raw = deep_merge(shared, body)
+        data = deep_merge(data, raw)
     env = env_overrides(environ)
     env = {k: v for k, v in env.items() if k in model.model_fields}
-    data = _deep_merge(data, env)
-    data = _deep_merge(data, parse_overrides(overrides))
-    try:
-        return model.model_validate(data)
-    except ValidationError as exc:
-        src = f" (from {yaml_path})" if yaml_path else ""
-        raise ConfigError(f"invalid {model.__name__} config{src}:\n{exc}") from exc
+    data = deep_merge(data, env)
+    data = deep_merge(data, parse_overrides(overrides))
+    return validate_config(model, data, base, f" (from {yaml_path})" if yaml_path else "")

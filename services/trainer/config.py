@@ -8,14 +8,13 @@ disagrees with the dataset is an error rather than a silent change.
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 from typing import Any, Iterable, Literal, Mapping
 
-from pydantic import Field, ValidationError, model_validator
+from pydantic import Field, model_validator
 
 from services.core.bus import BusConfig
-from services.core.config import ConfigError, Frozen, env_overrides, parse_overrides, read_yaml
+from services.core.config import ConfigError, Frozen, load_config, validate_config
 from services.policy.model.policy import ModelConfig
 from services.policy.model.presets import PRESETS, preset
 
@@ -79,26 +78,17 @@ class TrainerServiceConfig(Frozen):
     log_level: str = "INFO"  # logging level of the process
 
 
-def deep_merge(base: dict[str, Any], top: Mapping[str, Any]) -> dict[str, Any]:
-    out = dict(base)
-    for key, value in top.items():
-        if isinstance(value, Mapping) and isinstance(out.get(key), Mapping):
-            out[key] = deep_merge(dict(out[key]), value)
-        else:
-            out[key] = value
-    return out
+def preset_layer(data: Mapping[str, Any]) -> dict[str, Any]:
+    """The base layer of a training config: the preset it names (default ``tiny``)."""
+    name = data.get("preset", TrainConfig.model_fields["preset"].default)
+    if name not in PRESETS:
+        raise ConfigError(f"unknown preset {name!r}; choose one of {', '.join(PRESETS)}")
+    return preset(name)
 
 
 def train_config_from_dict(data: Mapping[str, Any], source: str = "") -> TrainConfig:
     """Validate ``data`` (YAML/env/CLI values merged) on top of its preset."""
-    name = data.get("preset", TrainConfig.model_fields["preset"].default)
-    if name not in PRESETS:
-        raise ConfigError(f"unknown preset {name!r}; choose one of {', '.join(PRESETS)}")
-    merged = deep_merge(preset(name), data)
-    try:
-        return TrainConfig.model_validate(merged)
-    except ValidationError as exc:
-        raise ConfigError(f"invalid training config{source}:\n{exc}") from exc
+    return validate_config(TrainConfig, data, preset_layer, source)
 
 
 def load_train_config(
@@ -108,19 +98,7 @@ def load_train_config(
     section: str | None = None,
 ) -> TrainConfig:
     """preset < YAML (optionally one ``section`` of it) < ``VIEWSCALE_*`` env < ``key=value`` overrides."""
-    environ = os.environ if environ is None else environ
-    data: dict[str, Any] = {}
-    if yaml_path:
-        raw = read_yaml(yaml_path)
-        if section is not None:
-            raw = raw.get(section, {}) or {}
-            if not isinstance(raw, dict):
-                raise ConfigError(f"section {section!r} of {yaml_path} must be a mapping")
-        data = deep_merge(data, raw)
-    env = {k: v for k, v in env_overrides(environ).items() if k in TrainConfig.model_fields}
-    data = deep_merge(data, env)
-    data = deep_merge(data, parse_overrides(overrides))
-    return train_config_from_dict(data, f" (from {yaml_path})" if yaml_path else "")
+    return load_config(TrainConfig, yaml_path, overrides, environ, section, base=preset_layer, yaml_from_env=False)
 
 
 def explicitly_set(cfg: Frozen, path: str) -> bool:

@@ -27,11 +27,11 @@ from pathlib import Path
 from typing import Any
 
 from services.core.bus import Bus
-from services.core.config import ConfigError, parse_overrides, read_yaml
+from services.core.config import ConfigError, deep_merge, parse_overrides, read_yaml
 from services.core.topics import TRAIN_PROGRESS, TRAIN_REQUEST
 from services.pb import trainer_pb2
 from services.pb.common_pb2 import Header
-from services.trainer.config import TrainConfig, TrainerServiceConfig, deep_merge, train_config_from_dict
+from services.trainer.config import TrainConfig, TrainerServiceConfig, train_config_from_dict
 
 log = logging.getLogger("trainer")
 
