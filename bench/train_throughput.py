@@ -96,7 +96,7 @@ def main() -> None:
         cfg = train_config_from_dict({
             "preset": args.preset, "data": str(data), "out": str(Path(tmp) / "run"), "steps": args.warmup + args.steps,
             "batch_size": args.batch, "device": args.device, "num_workers": args.workers, "progress": False,
-            "log_every": 1, "val_every": 0, "checkpoint_every": 0, "val_fraction": 0.0,
+            "log_every": 1, "val_every": 0, "checkpoint_every": 0, "validate": False,
         })
         with GpuSampler() as gpu:
             result = train(cfg, on_progress=lambda ev: stamps.append(time.perf_counter()))

@@ -4,7 +4,8 @@ Actions (..., 7) = (dp, drot, gripper):
 - dp and drot are each divided by one isotropic scale and get no offset, so any rotation M of a
   block commutes with normalisation: norm(M x) = M norm(x). The multi-view composition at
   inference applies per-view camera rotations to normalised actions and relies on this.
-- The scale of a block is the largest Euclidean norm of that block over every pseudo-demo.
+- The scale of a block is the largest Euclidean norm of that block over every training
+  pseudo-demo (the dataset build fits it on its training episodes only).
   A component never exceeds the vector's norm, so no normalised component exceeds 1 -- in any
   view's frame, held-out views included, since the norm does not depend on the frame.
 - The gripper closure is mapped affinely from its range ([0, 1], widened if the data leave it)

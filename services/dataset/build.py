@@ -50,6 +50,8 @@ class BuildParams:
     Tp: int = 16  # prediction horizon
     Ta: int = 8  # action steps executed per chunk (sets the end padding, as diffusion_policy)
     pad_actions: str = "edge"  # edge: repeat the edge row (diffusion_policy); hold: zero motion past the ends
+    val_fraction: float = 0.1  # share of episodes held out for validation (at least one when there are two)
+    split_seed: int = 0  # seeds which episodes are held out
 
     def __post_init__(self):
         if not self.views:
@@ -64,6 +66,8 @@ class BuildParams:
         w, h = self.image_size
         if w < 8 or h < 8:
             raise DatasetError(f"image size {w}x{h} is too small")
+        if not 0.0 <= self.val_fraction < 1.0:
+            raise DatasetError(f"val_fraction must be in [0, 1), got {self.val_fraction}")
         if self.pad_actions not in ("edge", "hold"):
             raise DatasetError(f"pad_actions must be edge or hold, not {self.pad_actions!r}")
         try:
@@ -430,9 +434,21 @@ def _prune(out: Path, episodes: list[dict[str, Any]]) -> None:
         raise DatasetError(f"episode id {dup[0]} appears in more than one file")
 
 
-def _fit_normalizer(out: Path, episodes: list[dict[str, Any]], views: tuple[str, ...]) -> Normalizer:
+def split_episodes(ids: list[str], val_fraction: float = 0.1, seed: int = 0) -> tuple[list[str], list[str]]:
+    """(train ids, val ids), by episode and deterministic: episodes ranked by a hash of (seed, id),
+    the first ``val_fraction`` of them held out; at least one when there are two or more."""
+    ranked = sorted(ids, key=lambda i: hashlib.sha256(f"{seed}:{i}".encode()).hexdigest())
+    n_val = max(1, round(val_fraction * len(ids))) if val_fraction > 0 and len(ids) >= 2 else 0
+    n_val = min(n_val, len(ids) - 1) if ids else 0
+    val = set(ranked[:n_val])
+    return [i for i in ids if i not in val], [i for i in ids if i in val]
+
+
+def _fit_normalizer(out: Path, episodes: list[dict[str, Any]], views: tuple[str, ...], train: list[str]) -> Normalizer:
+    """Fitted on the training episodes only: held-out data must not shape the model's units."""
     stats = NormalizerStats()
-    for e in episodes:
+    keep = set(train)
+    for e in (e for e in episodes if e["id"] in keep):
         d = out / EPISODES / e["dir"]
         for v in views:
             stats.add_actions(np.load(d / f"{v}.action.npy"))
@@ -466,7 +482,7 @@ def _episode_view(info: dict[str, Any], camera: dict[str, Any] | None) -> dict[s
     return out
 
 
-def _meta(params: BuildParams, episodes: list[dict[str, Any]]) -> dict[str, Any]:
+def _meta(params: BuildParams, episodes: list[dict[str, Any]], train: list[str], val: list[str]) -> dict[str, Any]:
     cameras, varies = _cameras(episodes, params.views)
     return {
         "version": VERSION,
@@ -491,6 +507,7 @@ def _meta(params: BuildParams, episodes: list[dict[str, Any]]) -> dict[str, Any]
              "views": {v: _episode_view(e["info"]["views"][v], cameras[v]) for v in params.views}}
             for e in episodes
         ],
+        "split": {"val_fraction": params.val_fraction, "seed": params.split_seed, "train": train, "val": val},
     }
 
 
@@ -528,11 +545,12 @@ def build_dataset(
     episode_seconds = time.perf_counter() - t_eps
     _prune(out, got.episodes)
 
-    norm = _fit_normalizer(out, got.episodes, params.views)
+    train, val = split_episodes([e["id"] for e in got.episodes], params.val_fraction, params.split_seed)
+    norm = _fit_normalizer(out, got.episodes, params.views, train)
     norm.save(out / NORMALIZER)
-    meta = _meta(params, got.episodes)
+    meta = _meta(params, got.episodes, train, val)
     _write_json(out / META, meta)
-    summary = summarise(out, params, got.episodes, norm, got.skipped)
+    summary = summarise(out, params, got.episodes, norm, got.skipped, (train, val))
     summary["build_s"] = round(time.perf_counter() - t0, 3)
     _write_json(out / SUMMARY, summary)
     if contact_episodes > 0:

@@ -57,6 +57,8 @@ def _build(args: argparse.Namespace) -> int:
             Tp=args.Tp,
             Ta=args.Ta,
             pad_actions=args.pad_actions,
+            val_fraction=args.val_fraction,
+            split_seed=args.split_seed,
         )
         result = build_dataset([Path(p) for p in args.raw], Path(args.out), params, progress=progress,
                                skip_bad=args.skip_bad, force=args.force, contact_episodes=args.contact_episodes,
@@ -120,6 +122,9 @@ def add_dataset_commands(subparsers: argparse._SubParsersAction) -> None:
     b.add_argument("--Ta", type=int, default=8, help="executed action steps, sets end padding (default 8)")
     b.add_argument("--pad-actions", default="edge", choices=("edge", "hold"),
                    help="edge: repeat the edge action (diffusion_policy, default); hold: zero motion")
+    b.add_argument("--val-fraction", type=float, default=0.1,
+                   help="share of episodes held out for validation; the normaliser never sees them (default 0.1)")
+    b.add_argument("--split-seed", type=int, default=0, help="seeds which episodes are held out (default 0)")
     b.add_argument("--skip-bad", action="store_true", help="skip unreadable episodes instead of stopping")
     b.add_argument("--force", action="store_true", help="rebuild every episode even if nothing changed")
     b.add_argument("--jobs", type=int, default=min(8, os.cpu_count() or 1),

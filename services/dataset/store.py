@@ -5,8 +5,9 @@ Layout of a dataset directory::
     manifest.json        written last: build parameters, source MCAPs and their sha256. Its
                          presence marks the dataset complete; a build removes it first.
     meta.json            action space, state frame, views, To/Tp/Ta, image size, per-view
-                         calibration (K at the cached size, R_ext, position), source episodes
-    normalizer.json      services.core.normalizer.Normalizer
+                         calibration (K at the cached size, R_ext, position), source episodes,
+                         and the split: which episodes train and which are held out
+    normalizer.json      services.core.normalizer.Normalizer, fitted on the training episodes only
     summary.json         counts, drops by reason, action statistics
     contact_sheet.png    first/middle/last frame of each view of a few episodes, with the
                          trajectory drawn from the pseudo-demo's own actions
@@ -92,3 +93,12 @@ class DatasetStore:
     @property
     def episode_ids(self) -> list[str]:
         return [e["id"] for e in self.meta["episodes"]]
+
+    def split(self, name: str) -> list[str]:
+        """Episode ids of the ``train`` or ``val`` split, as the build decided them."""
+        if name not in ("train", "val"):
+            raise DatasetError(f"unknown split {name!r}; choose train or val")
+        split = self.meta.get("split")
+        if not isinstance(split, dict) or name not in split:
+            raise DatasetError(f"{self.path} has no train/val split recorded: rebuild it with `viewscale dataset build`")
+        return list(split[name])

@@ -19,8 +19,9 @@ VIEW_DROPS = ("missing_frame", "stale_frame", "bad_frame")
 
 
 def summarise(store_dir: Path, params, episodes: list[dict[str, Any]], norm: Normalizer,
-              skipped: list[dict[str, str]]) -> dict[str, Any]:
-    """The summary of a build: ``episodes`` as the build lists them (id, dir, info)."""
+              skipped: list[dict[str, str]], split: tuple[list[str], list[str]]) -> dict[str, Any]:
+    """The summary of a build: ``episodes`` as the build lists them (id, dir, info); ``split``
+    the (train, val) episode ids."""
     acts, samples_per_view, rows_per_view = [], {v: 0 for v in params.views}, {v: 0 for v in params.views}
     drops: dict[str, Any] = {k: 0 for k in EPISODE_DROPS}
     drops["views"] = {v: {k: 0 for k in VIEW_DROPS} for v in params.views}
@@ -67,6 +68,7 @@ def summarise(store_dir: Path, params, episodes: list[dict[str, Any]], norm: Nor
             "normalised_abs_max": [round(float(x), 6) for x in np.abs(a_n).max(axis=0)] if len(a) else None,
         },
         "normalizer": {"pos_scale": norm.pos_scale, "rot_scale": norm.rot_scale},
+        "split": {"train": len(split[0]), "val": len(split[1]), "val_episodes": list(split[1])},
     }
 
 
@@ -102,8 +104,12 @@ def format_summary(s: dict[str, Any], path: Path | None = None) -> str:
         f"    max         {_fmt_vec(a['max'])}",
         f"    |normed|max {_fmt_vec(a['normalised_abs_max'])}",
         f"  normalizer    pos_scale {s['normalizer']['pos_scale']:.5f} m   "
-        f"rot_scale {s['normalizer']['rot_scale']:.5f} rad",
+        f"rot_scale {s['normalizer']['rot_scale']:.5f} rad (fitted on the training episodes)",
     ]
+    if "split" in s:
+        sp = s["split"]
+        lines.append(f"  split         {sp['train']} training, {sp['val']} held-out episodes"
+                     + (f" ({', '.join(sp['val_episodes'][:5])}{', ...' if sp['val'] > 5 else ''})" if sp["val"] else ""))
     if s.get("flagged_episodes"):
         lines.append(f"  flagged       {len(s['flagged_episodes'])} episodes: " + "; ".join(
             f"{k}: {', '.join(v)}" for k, v in list(s["flagged_episodes"].items())[:5]))

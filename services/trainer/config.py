@@ -48,7 +48,7 @@ class TrainConfig(Frozen):
     amp: Literal["auto", "bf16", "off"] = "auto"  # bf16 autocast: auto = on for CUDA devices that support it
     channels_last: Literal["auto", "on", "off"] = "auto"  # NHWC images for the encoder: auto = on for CUDA
     num_workers: int = Field(2, ge=0)  # data loader worker processes
-    val_fraction: float = Field(0.1, ge=0.0, lt=1.0)  # share of source episodes held out for validation
+    validate: bool = True  # validate on the dataset's held-out episodes (its build decides which)
     val_every: int = Field(200, ge=0)  # steps between validation passes; 0 = only at the end
     val_batches: int = Field(8, ge=1)  # batches per validation pass
     log_every: int = Field(10, ge=1)  # steps between log.jsonl lines and progress events

@@ -9,13 +9,12 @@
 
 Robot states and actions are small and loaded whole; frames stay in memory-mapped ``.npy``
 files opened lazily in each worker process (nothing open is pickled to a DataLoader worker).
-The train/val split is by episode and deterministic: episodes ranked by a hash of
-(seed, episode id), the first ``val_fraction`` of them are validation.
+The train/val split is the dataset's (by episode, decided and recorded by the build, which fits
+the normaliser on the training episodes only).
 """
 
 from __future__ import annotations
 
-import hashlib
 from collections import OrderedDict
 from pathlib import Path
 from typing import Any
@@ -30,17 +29,6 @@ from services.dataset.pseudo_demos import chunk_rows, chunk_starts, pad_hold
 SPLITS = ("train", "val", "all")
 
 
-def split_episodes(ids: list[str], val_fraction: float = 0.1, seed: int = 0) -> tuple[list[str], list[str]]:
-    """(train ids, val ids): at least one validation episode when there are two or more."""
-    if not 0.0 <= val_fraction < 1.0:
-        raise DatasetError(f"val_fraction must be in [0, 1), got {val_fraction}")
-    ranked = sorted(ids, key=lambda i: hashlib.sha256(f"{seed}:{i}".encode()).hexdigest())
-    n_val = max(1, round(val_fraction * len(ids))) if val_fraction > 0 and len(ids) >= 2 else 0
-    n_val = min(n_val, len(ids) - 1) if ids else 0
-    val = set(ranked[:n_val])
-    return [i for i in ids if i not in val], [i for i in ids if i in val]
-
-
 class PseudoDemoDataset(Dataset):
     """Every (pseudo-demo, current step) chunk of the chosen split and views."""
 
@@ -51,8 +39,6 @@ class PseudoDemoDataset(Dataset):
         path: str | Path,
         split: str = "train",
         views: list[str] | None = None,
-        val_fraction: float = 0.1,
-        split_seed: int = 0,
         To: int | None = None,
         Tp: int | None = None,
         Ta: int | None = None,
@@ -74,8 +60,7 @@ class PseudoDemoDataset(Dataset):
         if unknown or not chosen_views:
             raise DatasetError(f"view {', '.join(unknown) or '(none)'} is not in {self.path} "
                                f"(views: {', '.join(self.views)})")
-        train, val = split_episodes(store.episode_ids, val_fraction, split_seed)
-        self.episode_ids = {"train": train, "val": val, "all": store.episode_ids}[split]
+        self.episode_ids = store.episode_ids if split == "all" else store.split(split)
         keep_eps = set(self.episode_ids)
         self.demos = [d for d in store.demos if d.episode_id in keep_eps and d.view in chosen_views]
 

@@ -28,10 +28,12 @@ import torch.distributed as dist
 from torch.utils.data import DataLoader, Dataset, Sampler
 
 from services.core.config import ConfigError
+from services.dataset.store import DatasetError
 from services.policy.model.diffusion import compute_loss, make_train_scheduler
 from services.policy.model.policy import DiffusionPolicy, ModelConfig
 from services.policy import checkpoint as ckpt
 from services.trainer.config import TrainConfig, explicitly_set
+from services.trainer.data import PseudoDemoDataset
 
 log = logging.getLogger("trainer")
 
@@ -110,18 +112,15 @@ def load_train_data(cfg: TrainConfig) -> TrainData:
     """Open the dataset directory ``cfg.data`` (built by ``viewscale dataset build``): training and
     held-out episodes of the chosen views, with To/Tp/Ta from the model config where the user set
     them (windows are cut when loading) and from the dataset otherwise."""
-    from services.dataset.store import DatasetError
-    from services.trainer.data import PseudoDemoDataset
-
     horizons = {
         key: getattr(cfg.model, field)
         for key, field in (("To", "obs_horizon"), ("Tp", "pred_horizon"), ("Ta", "n_action_steps"))
         if explicitly_set(cfg, f"model.{field}")
     }
-    kwargs = dict(views=cfg.views, val_fraction=cfg.val_fraction, **horizons)
+    kwargs = dict(views=cfg.views, **horizons)
     try:
         train_ds = PseudoDemoDataset(cfg.data, split="train", **kwargs)
-        val_ds = PseudoDemoDataset(cfg.data, split="val", **kwargs) if cfg.val_fraction > 0 else None
+        val_ds = PseudoDemoDataset(cfg.data, split="val", **kwargs) if cfg.validate else None
     except DatasetError as exc:
         raise TrainingError(str(exc)) from exc
     except ValueError as exc:  # windows that do not fit the episodes (e.g. Tp too long)

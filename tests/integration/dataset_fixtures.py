@@ -24,15 +24,17 @@ from services.recorder.writer import EPISODE_CHANNEL, EPISODE_RECORD, EpisodeWri
 T0 = 1_700_000_000_000_000_000
 
 
-def trajectory(n: int, seed: int = 0, hold: tuple[int, ...] = ()):
+def trajectory(n: int, seed: int = 0, hold: tuple[int, ...] = (), scale: float = 1.0):
     """Base-frame actions (n, 7) and the states they produce: pos (n, 3), R (n, 3, 3), gripper (n,).
 
-    Ticks in ``hold`` are stale: the robot held still with the gripper where it was.
+    Ticks in ``hold`` are stale: the robot held still with the gripper where it was; ``scale``
+    multiplies every motion.
     """
     rng = np.random.default_rng(seed)
     t = np.arange(n)
     dp = np.c_[0.006 * np.cos(t / 6 + seed), 0.006 * np.sin(t / 5 + seed), -0.002 * np.cos(t / 9)]
     dr = np.c_[0.02 * np.sin(t / 4), 0.03 * np.cos(t / 7), 0.05 * np.sin(t / 5 + seed)] + rng.normal(0, 0.002, (n, 3))
+    dp, dr = scale * dp, scale * dr
     g = (t > n // 2).astype(float)
     for k in hold:
         dp[k], dr[k], g[k] = 0.0, 0.0, g[k - 1] if k > 0 else 0.0
@@ -78,12 +80,13 @@ def write_episode(
     no_calibration: list[str] = (),
     success: bool = True,
     calib_size: tuple[int, int] | None = None,
+    scale: float = 1.0,
 ) -> Path:
     """Write ``<out_dir>/<episode_id>.mcap``; returns its path."""
     rg = load_rig(rig)
     cams = cameras or rg.names
     period = int(1e9 / control_hz)
-    act, pos, R, grip = trajectory(n, seed, tuple(stale_actions))
+    act, pos, R, grip = trajectory(n, seed, tuple(stale_actions), scale)
     drop_frames = drop_frames or {}
     frame_delay_ns = frame_delay_ns or {}
     corrupt_frames = corrupt_frames or {}

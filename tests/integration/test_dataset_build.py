@@ -17,9 +17,9 @@ from services.cli import main as viewscale
 from services.core.rig import load_rig
 from services.core.action_spaces import from_space
 from services.core.geometry import rot6d_to_matrix
-from services.dataset.build import BuildParams, build_dataset
+from services.dataset.build import BuildParams, build_dataset, split_episodes
 from services.dataset.store import DatasetError, DatasetStore
-from services.trainer.data import load_dataset, split_episodes
+from services.trainer.data import load_dataset
 from services.dataset.episodes import CameraCalib, EpisodeError
 
 VIEWS = ("F", "FL", "FR")
@@ -66,6 +66,9 @@ def test_build_gives_one_pseudo_demo_per_view_and_batches_of_the_contract_shapes
     assert batch["action"].shape == (8, 16, 7)
     assert batch["view"].shape == (8,)
     assert batch["obs"].min() >= -1 and batch["obs"].max() <= 1 and batch["obs"].max() > 0.9
+    # The normaliser is fitted on the training episodes: there, no component exceeds 1.
+    train = load_dataset(camera_ds, split="train")
+    batch = torch.utils.data.default_collate([train[i] for i in range(len(train))])
     assert batch["action"].abs().max() <= 1 + 1e-6
     assert batch["state"].abs().max() <= 1 + 1e-6
 
@@ -119,10 +122,10 @@ def test_cached_frames_are_the_ticks_frames_and_meta_K_projects_into_them(camera
 
 
 def test_normalizer_is_shared_isotropic_and_bounded(camera_ds):
-    ds = load_dataset(camera_ds, split="all")
+    ds = load_dataset(camera_ds, split="train")
     n = json.loads((camera_ds / "normalizer.json").read_text())
     assert set(n) >= {"action", "state", "image"}
-    # Over every pseudo-demo of every view no normalised component exceeds 1, and the bound is met.
+    # Over every training pseudo-demo of every view no normalised component exceeds 1, and the bound is met.
     a = np.concatenate([np.load(d.path("action")) for d in ds.demos])
     a_n = ds.normalizer.normalize_action(a)
     assert np.abs(a_n).max() <= 1 + 1e-6
@@ -292,12 +295,29 @@ def test_bad_input_gets_a_clear_error_naming_the_file_or_view(tmp_path):
         build_dataset(tmp_path / "sized", tmp_path / "z", BuildParams(views=("F",), image_size=(32, 24)))
 
 
+def test_the_normaliser_never_sees_the_held_out_episodes(tmp_path):
+    ids = ["e0", "e1", "e2", "big"]
+    seed = next(s for s in range(100) if split_episodes(ids, 0.25, s)[1] == ["big"])
+    for i, name in enumerate(ids):
+        write_episode(tmp_path / "raw", name, 30, cameras=["F"], seed=i, scale=3.0 if name == "big" else 1.0)
+    out = tmp_path / "ds"
+    build_dataset(tmp_path / "raw", out, BuildParams(views=("F",), val_fraction=0.25, split_seed=seed))
+    store = DatasetStore(out)
+    assert store.split("val") == ["big"] and sorted(store.split("train")) == ["e0", "e1", "e2"]
+    norms = {d.episode_id: np.linalg.norm(d.load("action")[:, 0:3], axis=1).max() for d in store.demos}
+    assert store.normalizer.pos_scale == pytest.approx(max(norms[i] for i in ("e0", "e1", "e2")), rel=1e-6)
+    assert norms["big"] > 2 * store.normalizer.pos_scale  # fitted on all of them it would be this one's
+    assert store.summary["split"] == {"train": 3, "val": 1, "val_episodes": ["big"]}
+
+
 def test_split_is_by_episode_deterministic_and_disjoint(camera_ds):
-    train = load_dataset(camera_ds, split="train", val_fraction=0.34)
-    val = load_dataset(camera_ds, split="val", val_fraction=0.34)
+    train = load_dataset(camera_ds, split="train")
+    val = load_dataset(camera_ds, split="val")
     assert set(train.episode_ids) | set(val.episode_ids) == {"ep000", "ep001", "ep002"}
     assert not set(train.episode_ids) & set(val.episode_ids) and len(val.episode_ids) == 1
-    assert load_dataset(camera_ds, split="val", val_fraction=0.34).episode_ids == val.episode_ids
+    assert load_dataset(camera_ds, split="val").episode_ids == val.episode_ids
+    split = json.loads((camera_ds / "meta.json").read_text())["split"]  # recorded with the dataset
+    assert (split["train"], split["val"]) == (train.episode_ids, val.episode_ids)
     assert {d.episode_id for d in val.demos} == set(val.episode_ids)
     ids = [f"e{i}" for i in range(50)]
     tr, va = split_episodes(ids, 0.2, seed=1)

@@ -172,9 +172,9 @@ def test_cli_trains_and_reports(sim_dataset, tmp_path, capsys):
 
 @pytest.mark.slow
 def test_overfitting_one_short_episode_reproduces_its_actions(sim_dataset, tmp_path):
-    # One episode of one view: with two episodes the split holds one out, and training sees only the other.
+    # One episode of one view: with two episodes the dataset's split holds one out, and training sees the other.
     cfg = train_config_from_dict(tiny(sim_dataset, tmp_path / "run", steps=OVERFIT_STEPS, batch_size=16, views=["F"],
-                                      val_fraction=0.5, log_every=100, optim={"warmup_steps": 20}))
+                                      log_every=100, optim={"warmup_steps": 20}))
     train(cfg)
     policy = load_policy(tmp_path / "run").policy
     ds = load_train_data(cfg).train
