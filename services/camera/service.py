@@ -53,4 +53,5 @@ class CameraService:
 
 
 def main(cfg: CameraConfig) -> int:
-    return serve("camera", cfg.bus, lambda bus: CameraService(cfg, bus, make_driver(cfg)), f"{cfg.driver.type}/{cfg.rig}")
+    driver = make_driver(cfg)  # a driver that cannot be built fails before the bus is opened
+    return serve("camera", cfg.bus, lambda bus: CameraService(cfg, bus, driver), f"{cfg.driver.type}/{cfg.rig}")

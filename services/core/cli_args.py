@@ -31,4 +31,8 @@ def service_main(
         print(f"error: {exc}", file=sys.stderr)
         return 2
     configure_logging(getattr(cfg, "log_level", "INFO"))
-    return main(cfg)
+    try:
+        return main(cfg)
+    except (ConfigError, ConnectionError) as exc:  # a driver that cannot be built, a router not there
+        print(f"error: {exc}", file=sys.stderr)
+        return 2

@@ -21,7 +21,7 @@ from __future__ import annotations
 import importlib
 import re
 from dataclasses import dataclass
-from typing import Annotated, Any, Generic, TypeVar, Union
+from typing import Annotated, Any, ClassVar, Generic, Literal, TypeVar, Union
 
 from pydantic import ConfigDict, Discriminator, Field, Tag, ValidationError, field_validator
 
@@ -32,10 +32,22 @@ _CLASS_PATH = re.compile(r"^[A-Za-z_][\w.]*:[A-Za-z_]\w*$")
 EXTERNAL = "external"  # the discriminator tag of `type: package.module:Class` entries
 
 
+World = Literal["sim", "real"]  # the shared top-level `world` key of deploy/sim.yaml and deploy/real.yaml
+
+
 class DriverConfig(Frozen):
     """Base of every registered driver's config: ``type`` names the driver."""
 
+    sim_only: ClassVar[bool] = False  # needs the simulator (its task state or its world)
     type: str  # the registered name (a Literal in each subclass)
+
+
+def check_world(driver: Any, world: World, concept: str) -> None:
+    """Refuse a sim-only driver in a real-world session, at start-up rather than tick by tick."""
+    if world == "real" and getattr(driver, "sim_only", False):
+        why = " ".join((type(driver).__doc__ or "").split())
+        raise ValueError(f"{concept} driver {driver.type!r} only works in sim (world: real): {why} "
+                         "Pick a driver for hardware, or world: sim")
 
 
 class ExternalDriverConfig(Frozen):

@@ -45,4 +45,5 @@ class RobotService:
 
 
 def main(cfg: RobotConfig) -> int:
-    return serve("robot", cfg.bus, lambda bus: RobotService(cfg, bus, make_driver(cfg)), cfg.driver.type)
+    driver = make_driver(cfg)  # a driver that cannot be built fails before the bus is opened
+    return serve("robot", cfg.bus, lambda bus: RobotService(cfg, bus, driver), cfg.driver.type)

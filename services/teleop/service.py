@@ -120,4 +120,5 @@ class TeleopService:
 
 
 def main(cfg: TeleopConfig) -> int:
-    return serve("teleop", cfg.bus, lambda bus: TeleopService(cfg, bus, make_driver(cfg)), cfg.driver.type)
+    driver = make_driver(cfg)  # a driver that cannot be built fails before the bus is opened
+    return serve("teleop", cfg.bus, lambda bus: TeleopService(cfg, bus, driver), cfg.driver.type)

@@ -152,3 +152,23 @@ def test_bad_config_is_one_clear_line():
                           capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2
     assert "control_hz" in proc.stderr and "Traceback" not in proc.stderr
+
+
+@pytest.mark.parametrize("module, driver", [("services.teleop", "scripted"), ("services.robot", "sim"),
+                                            ("services.camera", "sim")])
+def test_a_sim_only_driver_is_refused_in_a_real_session_at_start_up(module, driver):
+    # deploy/real.yaml says world: real; the scripted expert would wait for a task state no real
+    # robot publishes and leave every tick stale, a sim camera would record a rendered scene.
+    proc = subprocess.run([sys.executable, "-m", module, "--config", "deploy/real.yaml", "--set", f"driver.type={driver}"],
+                          cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2, proc.stderr
+    assert f"driver '{driver}' only works in sim (world: real)" in proc.stderr and "Traceback" not in proc.stderr
+    if driver == "scripted":
+        assert "task state" in proc.stderr
+
+
+def test_a_driver_that_cannot_be_imported_is_one_line_before_any_connection():
+    proc = subprocess.run([sys.executable, "-m", "services.teleop", "--config", "deploy/real.yaml"], cwd=ROOT,
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr
+    assert proc.stderr.strip() == "error: module 'mylab.teleop' cannot be imported: No module named 'mylab'"
