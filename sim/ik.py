@@ -9,16 +9,13 @@ The damping keeps the step bounded near singularities at the cost of some accura
 
 from __future__ import annotations
 
-import os
 
-os.environ.setdefault("MUJOCO_GL", "egl")  # before mujoco is imported: headless rendering
+from dataclasses import dataclass
 
-from dataclasses import dataclass  # noqa: E402
+import mujoco
+import numpy as np
 
-import mujoco  # noqa: E402
-import numpy as np  # noqa: E402
-
-from services.core.geometry import rotation_error  # noqa: E402
+from services.core.geometry import rotation_error
 
 
 @dataclass(frozen=True)

@@ -15,16 +15,14 @@ agree with ``Camera.project`` exactly: the calibration is exact by construction.
 
 from __future__ import annotations
 
-import os
 from xml.sax.saxutils import quoteattr
 
-os.environ.setdefault("MUJOCO_GL", "egl")
 
-import mujoco  # noqa: E402
-import numpy as np  # noqa: E402
+import mujoco
+import numpy as np
 
-from services.core.rig import Rig  # noqa: E402
-from sim.tasks import Task  # noqa: E402
+from services.core.rig import Rig
+from sim.tasks import Task
 
 TIMESTEP = 0.002  # physics step (s)
 ARM_JOINTS = ("j1", "j2", "j3", "j4", "j5", "j6")
@@ -179,7 +177,11 @@ class MultiCameraRenderer:
             self._cams[name] = cam
         # The GL context is current only inside each call (``as_current``), so whichever thread
         # renders next can take it.
-        self._gl = mujoco.GLContext(width, height)
+        try:
+            self._gl = mujoco.GLContext(width, height)
+        except Exception as exc:  # GLFW on a machine without a display, most often
+            raise RuntimeError(f"cannot create an OpenGL context for rendering ({exc}); for headless rendering "
+                               "set MUJOCO_GL=egl (or osmesa) before mujoco is imported") from exc
         with self._gl.as_current():
             self._ctx = mujoco.MjrContext(model, mujoco.mjtFontScale.mjFONTSCALE_100)
             mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN, self._ctx)

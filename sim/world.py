@@ -18,27 +18,25 @@ machine and MuJoCo build; rendering does not perturb it).
 
 from __future__ import annotations
 
-import os
 
-os.environ.setdefault("MUJOCO_GL", "egl")  # before mujoco is imported: headless rendering
 
-import math  # noqa: E402
-import numbers  # noqa: E402
+import math
+import numbers
 
-import mujoco  # noqa: E402
-import numpy as np  # noqa: E402
+import mujoco
+import numpy as np
 
-from services.core.geometry import (  # noqa: E402
+from services.core.geometry import (
     clip_norm,
     matrix_to_quat_wxyz,
     orthonormalize,
     rotation_error,
     rotvec_to_matrix,
 )
-from services.core.rig import Rig  # noqa: E402
-from services.core.robot_types import ObjectPose, RobotSnapshot  # noqa: E402
-from sim.ik import SiteIk  # noqa: E402
-from sim.scene import (  # noqa: E402
+from services.core.rig import Rig
+from services.core.robot_types import ObjectPose, RobotSnapshot
+from sim.ik import SiteIk
+from sim.scene import (
     ARM_JOINTS,
     EEF_SITE,
     FINGER_JOINTS,
@@ -48,7 +46,7 @@ from sim.scene import (  # noqa: E402
     MultiCameraRenderer,
     build_model,
 )
-from sim.tasks import TASKS, make_task  # noqa: E402
+from sim.tasks import TASKS, make_task
 
 __all__ = ["TASKS", "SimWorld"]
 

@@ -1,13 +1,12 @@
-"""Shared fixtures: a real Zenoh router on a free loopback port, and bus configs to join it."""
+"""Shared fixtures: a real Zenoh router on a free loopback port, bus configs to join it, and one
+small sim dataset recorded through the real services for the training tests."""
 
 from __future__ import annotations
 
 import os
-
-os.environ.setdefault("MUJOCO_GL", "egl")  # before anything imports mujoco
-
 import shutil
 import subprocess
+from pathlib import Path
 
 import pytest
 
@@ -48,11 +47,37 @@ def _docker_usable() -> bool:
     return subprocess.run(["docker", "info"], capture_output=True).returncode == 0
 
 
+def pytest_configure(config):
+    # Headless MuJoCo for every test process and the services it starts (set here, never at import).
+    os.environ.setdefault("MUJOCO_GL", "egl")
+
+
 def pytest_collection_modifyitems(config, items):
-    import torch  # noqa: F401  (gpu marker)
+    gpu_items = [item for item in items if "gpu" in item.keywords]
+    if not gpu_items:
+        return  # torch is imported only where a test needs it
+    import torch
 
     if not torch.cuda.is_available():
         skip_gpu = pytest.mark.skip(reason="no CUDA device on this machine")
         for item in items:
             if "gpu" in item.keywords:
                 item.add_marker(skip_gpu)
+
+
+SIM_VIEWS = ["F", "FL", "FR"]
+
+
+@pytest.fixture(scope="session")
+def sim_dataset(tmp_path_factory) -> Path:
+    """Two scripted lift episodes on the three15 rig (32 px, lockstep), recorded by `viewscale collect`
+    and built into a camera-space dataset by `viewscale dataset build`."""
+    from services.cli import main as viewscale
+
+    root = tmp_path_factory.mktemp("sim")
+    raw, ds = root / "raw", root / "ds"
+    assert viewscale(["collect", "--task", "lift", "--episodes", "2", "--rig", "three15", "--out", str(raw),
+                      "--size", "32", "--fast"]) == 0
+    assert viewscale(["dataset", "build", "--raw", str(raw), "--views", ",".join(SIM_VIEWS), "--space", "camera",
+                      "--out", str(ds), "--image-size", "32x32", "--contact-episodes", "0"]) == 0
+    return ds

@@ -63,6 +63,8 @@ class TrainResult:
     samples_per_s: float = 0.0  # all processes
     data_wait: float = 0.0  # share of wall time spent waiting for the data loader
     stopped: bool = False  # a stop was requested before ``steps``
+    compute_dtypes: set[str] = field(default_factory=set)  # dtypes the U-Net computed in (seen in this session)
+    channels_last: bool = False  # the encoder's conv weights were NHWC while training
     history: list[dict[str, Any]] = field(default_factory=list)
 
 
@@ -473,6 +475,11 @@ def train(
         # drop log lines past the checkpoint we resumed from (a crash after it logged on)
         (out / "log.jsonl").write_text("".join(json.dumps(h) + "\n" for h in history))
     policy.train()
+    # What the first step really computed in: the U-Net output under autocast, the conv layout.
+    watch = policy.noise_model.final_conv.register_forward_hook(
+        lambda _m, _i, out: result.compute_dtypes.add(str(out.dtype).removeprefix("torch.")))
+    result.channels_last = all(p.is_contiguous(memory_format=torch.channels_last)
+                               for p in policy.encoder.parameters() if p.dim() == 4)
     try:
         it = iter(loader)
         while step < cfg.steps:
@@ -503,6 +510,7 @@ def train(
                 torch.nn.utils.clip_grad_norm_(params, cfg.optim.grad_clip)
             optim.step()
             step += 1
+            watch.remove()
             if ema is not None:
                 ema.update(policy, step)
             interval_losses.append(float(check))

@@ -3,11 +3,8 @@ built into pseudo-demos (`viewscale dataset build`), trained with the tiny prese
 
 from __future__ import annotations
 
-import os
-
-os.environ.setdefault("MUJOCO_GL", "egl")
-
 import json
+import os
 import threading
 from pathlib import Path
 
@@ -17,6 +14,7 @@ import torch
 from safetensors.torch import load_file
 
 from services.cli import main as viewscale
+from services.core.config import ConfigError
 from services.policy.model import action_steps, sample
 from services.core.normalizer import Normalizer
 from services.policy.checkpoint import CheckpointError, latest_checkpoint, load_policy
@@ -25,23 +23,7 @@ from services.trainer.train import StepBatchSampler, TrainingError, load_train_d
 
 torch.set_num_threads(1)
 
-VIEWS = ["F", "FL", "FR"]
-
-
-def build_sim_dataset(root: Path, episodes: int = 2, size: int = 32) -> Path:
-    """Record ``episodes`` scripted lift episodes on the three15 rig and build a camera-space dataset."""
-    raw, ds = root / "raw", root / "ds"
-    assert viewscale(["collect", "--task", "lift", "--episodes", str(episodes), "--rig", "three15",
-                      "--out", str(raw), "--size", str(size), "--fast"]) == 0
-    assert viewscale(["dataset", "build", "--raw", str(raw), "--views", ",".join(VIEWS), "--space", "camera",
-                      "--out", str(ds), "--image-size", f"{size}x{size}", "--contact-episodes", "0"]) == 0
-    return ds
-
-
-@pytest.fixture(scope="module")
-def sim_dataset(tmp_path_factory) -> Path:
-    return build_sim_dataset(tmp_path_factory.mktemp("sim"))
-
+VIEWS = ["F", "FL", "FR"]  # the views of the session's sim_dataset (tests/conftest.py)
 
 def tiny(data: Path, out: Path, **kw) -> dict:
     cfg = {"preset": "tiny", "data": str(data), "out": str(out), "num_workers": 0, "progress": False,
@@ -59,6 +41,7 @@ def test_loss_decreases_over_a_few_dozen_steps(sim_dataset, tmp_path):
     cfg = train_config_from_dict(tiny(sim_dataset, tmp_path / "run", steps=80, batch_size=32, val_every=40,
                                       optim={"warmup_steps": 20}))
     result = train(cfg)
+    assert result.compute_dtypes == {"float32"} and not result.channels_last  # CPU defaults: no autocast, NCHW
     losses = [h["loss"] for h in result.history]
     assert len(losses) == 80
     # epsilon MSE starts near 1 (eps ~ N(0, I)); the model must beat "predict zero" clearly
@@ -131,7 +114,7 @@ def test_resume_with_another_model_config_is_refused(sim_dataset, tmp_path):
         load_policy(tmp_path / "run", expect=ModelConfig.model_validate(
             {**load_policy(tmp_path / "run").info["model"], "down_dims": [16, 32]}))
     fresh = train_config_from_dict({**tiny(sim_dataset, tmp_path / "run", steps=2), "resume": False})
-    with pytest.raises(Exception, match="already has checkpoints"):
+    with pytest.raises(ConfigError, match="already has checkpoints"):
         train(fresh)
 
 
@@ -257,6 +240,8 @@ def test_gpu_training_uses_bf16_and_channels_last(sim_dataset, tmp_path):
     cfg = train_config_from_dict(tiny(sim_dataset, tmp_path / "run", steps=3, device="cuda"))
     result = train(cfg)
     assert result.step == 3 and np.isfinite(result.loss)
+    assert result.compute_dtypes == {"bfloat16"}  # amp=auto: the U-Net ran under bf16 autocast
+    assert result.channels_last  # channels_last=auto: NHWC encoder weights on CUDA
     loaded = load_policy(tmp_path / "run", device="cuda")
     obs = torch.rand(1, 2, 3, 32, 32, device="cuda") * 2 - 1
     chunk = sample(loaded.policy, obs, torch.zeros(1, 2, 10, device="cuda"))

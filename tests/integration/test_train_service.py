@@ -12,7 +12,6 @@ import sys
 import time
 from pathlib import Path
 
-import pytest
 import torch
 
 from services.pb import trainer_pb2 as S
@@ -21,16 +20,10 @@ from services.trainer.config import TrainerServiceConfig
 from services.core.topics import TRAIN_PROGRESS, TRAIN_REQUEST
 from services.trainer.service import SERVICE_NAME, TrainerService
 
-from test_train import build_sim_dataset  # noqa: E402  (same directory)
 
 torch.set_num_threads(1)
 
 JOB_SETTINGS = ["num_workers=0", "batch_size=4", "log_every=1", "val_every=0", "checkpoint_every=0"]
-
-
-@pytest.fixture(scope="module")
-def sim_dataset(tmp_path_factory) -> Path:
-    return build_sim_dataset(tmp_path_factory.mktemp("sim"))
 
 
 def _progress(bus) -> "queue.Queue[S.TrainProgress]":

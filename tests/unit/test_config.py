@@ -1,4 +1,5 @@
 import pytest
+from pydantic import ValidationError
 
 from services.core.bus import BusConfig
 from services.core.config import ConfigError, Frozen, load_config, parse_overrides
@@ -47,5 +48,19 @@ def test_bad_override_and_missing_file(tmp_path):
 
 def test_config_is_frozen():
     cfg = Model()
-    with pytest.raises(Exception):
+    with pytest.raises(ValidationError, match="frozen"):
         cfg.rate = 3.0  # type: ignore[misc]
+
+
+def test_collecting_tests_that_need_no_model_does_not_import_torch():
+    # torch takes seconds to import; only the tests that train or sample may pay for it.
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    code = ("import sys, pytest; rc = pytest.main(['--collect-only', '-q', '-p', 'no:cacheprovider', "
+            "'tests/unit/test_rig.py', 'tests/unit/test_registry.py', 'tests/integration/test_recorder_service.py']); "
+            "print('TORCH', 'torch' in sys.modules, 'RC', rc)")
+    out = subprocess.run([sys.executable, "-c", code], cwd=root, capture_output=True, text=True, timeout=120)
+    assert "TORCH False RC 0" in out.stdout, out.stdout[-2000:] + out.stderr[-2000:]

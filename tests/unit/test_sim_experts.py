@@ -2,9 +2,6 @@
 in bench/expert_success.py), seeing only the snapshot and the object poses."""
 
 import math
-import os
-
-os.environ.setdefault("MUJOCO_GL", "egl")
 
 import numpy as np
 import pytest

@@ -1,9 +1,6 @@
 """The scene's cameras are the rig's cameras: a known 3D point lands where Camera.project says
 (measured: within 0.1 px at 320 x 240, 0.21 px at 84 x 84; asserted: 0.5 px)."""
 
-import os
-
-os.environ.setdefault("MUJOCO_GL", "egl")
 
 import mujoco
 import numpy as np

@@ -3,9 +3,7 @@ the action limits, and clear errors on bad input."""
 
 import math
 import threading
-import os
 
-os.environ.setdefault("MUJOCO_GL", "egl")
 
 import mujoco
 import numpy as np
