@@ -102,7 +102,7 @@ class EpisodeMeta(_message.Message):
     def __init__(self, episode_id: _Optional[str] = ..., task: _Optional[str] = ..., seed: _Optional[int] = ..., rig: _Optional[str] = ..., success: _Optional[bool] = ..., control_hz: _Optional[float] = ..., achieved_hz: _Optional[float] = ..., ticks: _Optional[int] = ..., frames: _Optional[_Mapping[str, int]] = ..., drops: _Optional[_Mapping[str, int]] = ..., malformed: _Optional[_Mapping[str, int]] = ..., flags: _Optional[_Iterable[str]] = ..., start_ns: _Optional[int] = ..., end_ns: _Optional[int] = ..., path: _Optional[str] = ..., gaps: _Optional[_Mapping[str, int]] = ..., stale_ticks: _Optional[int] = ..., clipped_ticks: _Optional[int] = ..., lockstep: _Optional[bool] = ...) -> None: ...
 
 class EpisodeRequest(_message.Message):
-    __slots__ = ("command", "episode_id", "task", "seed", "rig", "control_hz", "success", "ticks", "lockstep")
+    __slots__ = ("command", "episode_id", "task", "seed", "rig", "control_hz", "success", "ticks", "lockstep", "interrupted")
     COMMAND_FIELD_NUMBER: _ClassVar[int]
     EPISODE_ID_FIELD_NUMBER: _ClassVar[int]
     TASK_FIELD_NUMBER: _ClassVar[int]
@@ -112,6 +112,7 @@ class EpisodeRequest(_message.Message):
     SUCCESS_FIELD_NUMBER: _ClassVar[int]
     TICKS_FIELD_NUMBER: _ClassVar[int]
     LOCKSTEP_FIELD_NUMBER: _ClassVar[int]
+    INTERRUPTED_FIELD_NUMBER: _ClassVar[int]
     command: EpisodeCommand
     episode_id: str
     task: str
@@ -121,7 +122,8 @@ class EpisodeRequest(_message.Message):
     success: bool
     ticks: int
     lockstep: bool
-    def __init__(self, command: _Optional[_Union[EpisodeCommand, str]] = ..., episode_id: _Optional[str] = ..., task: _Optional[str] = ..., seed: _Optional[int] = ..., rig: _Optional[str] = ..., control_hz: _Optional[float] = ..., success: _Optional[bool] = ..., ticks: _Optional[int] = ..., lockstep: _Optional[bool] = ...) -> None: ...
+    interrupted: str
+    def __init__(self, command: _Optional[_Union[EpisodeCommand, str]] = ..., episode_id: _Optional[str] = ..., task: _Optional[str] = ..., seed: _Optional[int] = ..., rig: _Optional[str] = ..., control_hz: _Optional[float] = ..., success: _Optional[bool] = ..., ticks: _Optional[int] = ..., lockstep: _Optional[bool] = ..., interrupted: _Optional[str] = ...) -> None: ...
 
 class EpisodeReply(_message.Message):
     __slots__ = ("ok", "error", "recording", "meta")

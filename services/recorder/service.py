@@ -298,6 +298,8 @@ class Recorder:
     def _finish_stop(self, req: EpisodeRequest) -> EpisodeReply:
         if self._episode is None:  # discarded meanwhile
             return self._error("episode was discarded before STOP completed")
+        if req.interrupted:
+            self._episode.note(f"{INTERRUPTED}: {req.interrupted}")
         return self._close_episode(success=req.success, ticks=req.ticks)
 
     def _discard(self, req: EpisodeRequest, fut: Future) -> EpisodeReply:

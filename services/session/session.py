@@ -152,7 +152,8 @@ class Session:
             # Close what was recorded as a failed episode (the recorder flags it) rather than
             # deleting it: an infrastructure fault must not silently lose data.
             try:
-                reply = self._recorder(EpisodeCommand.EPISODE_COMMAND_STOP, episode_id=episode_id, success=False)
+                reply = self._recorder(EpisodeCommand.EPISODE_COMMAND_STOP, episode_id=episode_id, success=False,
+                                       interrupted=str(exc) or type(exc).__name__)
                 self.progress(f"episode {episode_id} interrupted ({exc}); kept as failed: {reply.meta.path}")
             except Exception as stop_exc:
                 log.warning("could not close interrupted episode %s: %s", episode_id, stop_exc)

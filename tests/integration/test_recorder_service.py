@@ -348,6 +348,18 @@ def test_an_episode_below_the_rate_floor_is_flagged(net, make_recorder):
     assert "robot/state: 10 states for 12 ticks" in flags and "camera F: 10 frames for 12 ticks" in flags
 
 
+def test_a_stop_that_says_interrupted_flags_the_episode(net, make_recorder):
+    make_recorder(stop_grace_s=0.2)
+    pub = net.client()
+    pub.wait_alive(["recorder"], timeout=10)
+    src = Source(pub, cameras=("F",))
+    assert start(pub, "cut").ok
+    src.run(range(5))
+    reply = control(pub, EPISODE_COMMAND_STOP, success=False, ticks=5, interrupted="SIGTERM to the session")
+    assert reply.ok and not reply.meta.success
+    assert list(reply.meta.flags) == ["interrupted: SIGTERM to the session"]
+
+
 def test_shutdown_closes_the_open_episode_as_interrupted(net, tmp_path):
     cfg = RecorderConfig(bus=net.bus_config(), out_dir=tmp_path / "episodes")
     pub = net.client()
