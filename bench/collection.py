@@ -24,8 +24,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import psutil  # noqa: E402
 
 from bench.common import report  # noqa: E402
-from services.session.collect import LocalStack  # noqa: E402
 from services.core.bus import Bus  # noqa: E402
+from services.session.collect import LocalStack  # noqa: E402
 from services.session.config import SessionConfig  # noqa: E402
 from services.session.session import Session  # noqa: E402
 
@@ -42,8 +42,14 @@ def main() -> None:
     load0 = round(os.getloadavg()[0], 2)  # other work on the machine skews CPU and rate numbers
     with tempfile.TemporaryDirectory(prefix="vs-bench-") as tmp:
         out = Path(tmp)
-        sim = [f"rig={args.rig}", f"task={args.task}", f"width={args.size}", f"height={args.size}",
-               f"control_hz={args.hz}", "realtime=true"]
+        sim = [
+            f"rig={args.rig}",
+            f"task={args.task}",
+            f"width={args.size}",
+            f"height={args.size}",
+            f"control_hz={args.hz}",
+            "realtime=true",
+        ]
         with LocalStack(out, None, {"sim": sim, "recorder": [f"out_dir={out}"], "teleop": []}) as stack:
             procs = {c.name: psutil.Process(c.proc.pid) for c in stack.children}
             procs["router+session"] = psutil.Process()
@@ -64,18 +70,26 @@ def main() -> None:
 
     recorded = [a.meta for a in attempts if a.meta is not None]
     ticks = sum(a.ticks for a in attempts)
-    report("collection", {
-        "load_avg_1m_before_after": [load0, round(os.getloadavg()[0], 2)],
-        "rig": args.rig, "size": args.size, "control_hz": args.hz, "seconds": round(wall, 1),
-        "episodes": len(attempts), "recorded": len(recorded), "ticks": ticks,
-        "achieved_hz_mean": round(sum(m.achieved_hz for m in recorded) / max(1, len(recorded)), 2),
-        "achieved_hz_min": round(min((m.achieved_hz for m in recorded), default=0.0), 2),
-        "drops": int(sum(sum(m.drops.values()) for m in recorded)),
-        "stale_ticks": int(sum(m.stale_ticks for m in recorded)),
-        "failed_attempts": len(attempts) - len(recorded),
-        "flagged": sum(1 for m in recorded if m.flags),
-        "cpu_percent": cpu,
-    })
+    report(
+        "collection",
+        {
+            "load_avg_1m_before_after": [load0, round(os.getloadavg()[0], 2)],
+            "rig": args.rig,
+            "size": args.size,
+            "control_hz": args.hz,
+            "seconds": round(wall, 1),
+            "episodes": len(attempts),
+            "recorded": len(recorded),
+            "ticks": ticks,
+            "achieved_hz_mean": round(sum(m.achieved_hz for m in recorded) / max(1, len(recorded)), 2),
+            "achieved_hz_min": round(min((m.achieved_hz for m in recorded), default=0.0), 2),
+            "drops": int(sum(sum(m.drops.values()) for m in recorded)),
+            "stale_ticks": int(sum(m.stale_ticks for m in recorded)),
+            "failed_attempts": len(attempts) - len(recorded),
+            "flagged": sum(1 for m in recorded if m.flags),
+            "cpu_percent": cpu,
+        },
+    )
 
 
 if __name__ == "__main__":

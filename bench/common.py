@@ -38,13 +38,19 @@ def machine() -> str:
 
 def report(name: str, result: dict) -> dict:
     """Print the JSON line and append it to RESULTS.md; returns the full record."""
-    record = {"bench": name, "date": datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
-              "machine": machine(), "loadavg": [round(x, 2) for x in os.getloadavg()], **result}
+    record = {
+        "bench": name,
+        "date": datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
+        "machine": machine(),
+        "loadavg": [round(x, 2) for x in os.getloadavg()],
+        **result,
+    }
     line = json.dumps(record, sort_keys=False)
     print(line, flush=True)
     if not RESULTS.exists():
         RESULTS.write_text(HEADER)
     with RESULTS.open("a") as fh:
-        fh.write(f"- `{name}` {record['date']} on {record['machine']}, load {record['loadavg']}:\n"
-                 f"  `{json.dumps(result)}`\n")
+        fh.write(
+            f"- `{name}` {record['date']} on {record['machine']}, load {record['loadavg']}:\n  `{json.dumps(result)}`\n"
+        )
     return record

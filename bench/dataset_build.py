@@ -32,15 +32,29 @@ import numpy as np  # noqa: E402
 
 from bench.common import report  # noqa: E402
 from services.core import topics  # noqa: E402
-from services.recorder.reader import read_episode  # noqa: E402
 from services.dataset.build import BuildParams, build_dataset, find_episodes  # noqa: E402
+from services.recorder.reader import read_episode  # noqa: E402
 
 
 def collect_episodes(out: Path, episodes: int, size: int, task: str, rig: str) -> None:
     from services.cli import main as viewscale
 
-    rc = viewscale(["collect", "--task", task, "--episodes", str(episodes), "--rig", rig, "--out", str(out),
-                    "--size", str(size), "--fast"])
+    rc = viewscale(
+        [
+            "collect",
+            "--task",
+            task,
+            "--episodes",
+            str(episodes),
+            "--rig",
+            rig,
+            "--out",
+            str(out),
+            "--size",
+            str(size),
+            "--fast",
+        ]
+    )
     if rc != 0:
         raise SystemExit(f"collection failed (exit {rc})")
 
@@ -67,8 +81,9 @@ def loader_rate(ds_dir: Path, batch: int, workers: int, batches: int) -> tuple[f
     from services.trainer.data import load_dataset
 
     ds = load_dataset(ds_dir, split="all")
-    loader = torch.utils.data.DataLoader(ds, batch_size=batch, shuffle=True, num_workers=workers,
-                                         persistent_workers=workers > 0, drop_last=True)
+    loader = torch.utils.data.DataLoader(
+        ds, batch_size=batch, shuffle=True, num_workers=workers, persistent_workers=workers > 0, drop_last=True
+    )
     if len(loader) == 0:
         raise SystemExit(f"dataset has {len(ds)} samples, fewer than one batch of {batch}")
     seen, t0 = 0, None
@@ -113,24 +128,27 @@ def main() -> None:
         res = build_dataset(raw, out, params, force=True, jobs=args.jobs)
         t_build = res.seconds
         loader_sps, n_samples = loader_rate(out, args.batch, args.workers, args.batches)
-        report("dataset_build", {
-            "episodes": len(paths),
-            "views": len(views),
-            "source_px": args.size if not args.raw else None,
-            "cache_px": args.image_size,
-            "frames": res.frames,
-            "decode_fps": round(n_dec / t_dec, 1),
-            "build_fps": round(res.frames / t_build, 1),
-            "build_vs_decode": round((res.frames / t_build) / (n_dec / t_dec), 3),
-            "build_s": round(t_build, 2),
-            "episode_stage_fps": round(res.frames / res.episode_seconds, 1),
-            "build_jobs": args.jobs,
-            "samples": n_samples,
-            "loader_batch": args.batch,
-            "loader_workers": args.workers,
-            "loader_samples_per_s": round(loader_sps, 1),
-            "cpu_cores": os.cpu_count(),
-        })
+        report(
+            "dataset_build",
+            {
+                "episodes": len(paths),
+                "views": len(views),
+                "source_px": args.size if not args.raw else None,
+                "cache_px": args.image_size,
+                "frames": res.frames,
+                "decode_fps": round(n_dec / t_dec, 1),
+                "build_fps": round(res.frames / t_build, 1),
+                "build_vs_decode": round((res.frames / t_build) / (n_dec / t_dec), 3),
+                "build_s": round(t_build, 2),
+                "episode_stage_fps": round(res.frames / res.episode_seconds, 1),
+                "build_jobs": args.jobs,
+                "samples": n_samples,
+                "loader_batch": args.batch,
+                "loader_workers": args.workers,
+                "loader_samples_per_s": round(loader_sps, 1),
+                "cpu_cores": os.cpu_count(),
+            },
+        )
 
 
 if __name__ == "__main__":

@@ -20,9 +20,9 @@ from pathlib import Path
 os.environ.setdefault("MUJOCO_GL", "egl")
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench.common import report  # noqa: E402
 import numpy as np  # noqa: E402
 
+from bench.common import report  # noqa: E402
 from services.core.rig import load_rig  # noqa: E402
 from services.core.robot_types import EefDelta  # noqa: E402
 from services.robot.safety import Safety, SafetyConfig  # noqa: E402

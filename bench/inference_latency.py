@@ -39,10 +39,19 @@ def main() -> None:
 
     if args.threads:
         torch.set_num_threads(args.threads)
-    device = torch.device("cuda" if args.device == "auto" and torch.cuda.is_available() else
-                          ("cpu" if args.device == "auto" else args.device))
-    cfg = ModelConfig.model_validate({**preset(args.preset)["model"], "image_size": (args.size, args.size),
-                                      "state_dim": 10, "noise": {"num_inference_steps": args.steps}})
+    device = torch.device(
+        "cuda"
+        if args.device == "auto" and torch.cuda.is_available()
+        else ("cpu" if args.device == "auto" else args.device)
+    )
+    cfg = ModelConfig.model_validate(
+        {
+            **preset(args.preset)["model"],
+            "image_size": (args.size, args.size),
+            "state_dim": 10,
+            "noise": {"num_inference_steps": args.steps},
+        }
+    )
     torch.manual_seed(0)
     policy = DiffusionPolicy(cfg, load_pretrained=False).to(device).eval()
     sched = make_inference_scheduler(cfg.noise)
@@ -74,14 +83,22 @@ def main() -> None:
     def p90(v):
         return sorted(v)[int(0.9 * (len(v) - 1))]
 
-    report("inference_latency", {
-        "preset": args.preset, "device": str(device), "threads": torch.get_num_threads(), "image": args.size,
-        "ddim_steps": args.steps, "params_M": round(policy.num_parameters() / 1e6, 2),
-        "encode_ms_p50": round(statistics.median(enc_ms), 2),
-        "step_ms_p50": round(statistics.median(step_ms), 2),
-        "total_ms_p50": round(statistics.median(total_ms), 2), "total_ms_p90": round(p90(total_ms), 2),
-        "reps": args.reps,
-    })
+    report(
+        "inference_latency",
+        {
+            "preset": args.preset,
+            "device": str(device),
+            "threads": torch.get_num_threads(),
+            "image": args.size,
+            "ddim_steps": args.steps,
+            "params_M": round(policy.num_parameters() / 1e6, 2),
+            "encode_ms_p50": round(statistics.median(enc_ms), 2),
+            "step_ms_p50": round(statistics.median(step_ms), 2),
+            "total_ms_p50": round(statistics.median(total_ms), 2),
+            "total_ms_p90": round(p90(total_ms), 2),
+            "reps": args.reps,
+        },
+    )
 
 
 if __name__ == "__main__":

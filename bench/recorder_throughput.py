@@ -68,11 +68,28 @@ class Harness:
         self.out_dir = out_dir
         self._log = open(log, "a")
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "services.recorder", "--set", "bus.mode=client",
-             "--set", f"bus.connect=[{self.endpoint}]", "--set", f"out_dir={out_dir}",
-             "--set", f"decode_images={str(decode_images).lower()}", "--set", "stop_grace_s=10",
-             "--set", "log_level=WARNING"],
-            cwd=ROOT, stdout=subprocess.PIPE, stderr=self._log, text=True)
+            [
+                sys.executable,
+                "-m",
+                "services.recorder",
+                "--set",
+                "bus.mode=client",
+                "--set",
+                f"bus.connect=[{self.endpoint}]",
+                "--set",
+                f"out_dir={out_dir}",
+                "--set",
+                f"decode_images={str(decode_images).lower()}",
+                "--set",
+                "stop_grace_s=10",
+                "--set",
+                "log_level=WARNING",
+            ],
+            cwd=ROOT,
+            stdout=subprocess.PIPE,
+            stderr=self._log,
+            text=True,
+        )
         ready = self.proc.stdout.readline()
         if not ready.startswith("ready recorder"):
             raise SystemExit(f"recorder did not start (see {log})")
@@ -101,8 +118,9 @@ class Harness:
         assert reply.ok, reply.error
         ticks = int(tick_hz * seconds)
         sent_bytes = 0
-        state = RobotState(eef_pos=[0.4, 0.0, 0.2], eef_quat_wxyz=[1, 0, 0, 0], joint_pos=[0.0] * 7,
-                           joint_vel=[0.0] * 7)
+        state = RobotState(
+            eef_pos=[0.4, 0.0, 0.2], eef_quat_wxyz=[1, 0, 0, 0], joint_pos=[0.0] * 7, joint_vel=[0.0] * 7
+        )
         t0 = time.perf_counter()
         for i in range(ticks):
             # Absolute schedule; when behind, publish straight away (the source is then the limit).
@@ -127,7 +145,8 @@ class Harness:
         path.unlink()
         # Clean: nothing dropped, and every camera and the state channel hold all ticks (else flagged).
         complete = all(meta.frames.get(c, 0) == ticks for c in cameras) and not any(
-            f.startswith("robot/state:") for f in meta.flags)
+            f.startswith("robot/state:") for f in meta.flags
+        )
         return {
             "tick_hz": tick_hz,
             "achieved_tick_hz": ticks / publish_s,

@@ -45,8 +45,13 @@ def main() -> None:
     rig = load_rig(args.rig)
     zero = np.zeros(3)
     # The box may be shared: the load average says how much of it this run had.
-    result = {"rig": args.rig, "cameras": len(rig.names), "task": args.task,
-              "gl": os.environ.get("MUJOCO_GL", ""), "load_avg_1m_before": round(os.getloadavg()[0], 2)}
+    result = {
+        "rig": args.rig,
+        "cameras": len(rig.names),
+        "task": args.task,
+        "gl": os.environ.get("MUJOCO_GL", ""),
+        "load_avg_1m_before": round(os.getloadavg()[0], 2),
+    }
     for size in args.sizes:
         with SimWorld(args.task, rig, size, size) as world:
             world.reset(0)
@@ -57,8 +62,10 @@ def main() -> None:
                 world.render()
 
             both = rate(tick_and_render, args.seconds)
-        result[f"{size}x{size}"] = {"render_sets_per_s": round(render_only, 1),
-                                    "step_render_sets_per_s": round(both, 1)}
+        result[f"{size}x{size}"] = {
+            "render_sets_per_s": round(render_only, 1),
+            "step_render_sets_per_s": round(both, 1),
+        }
     result["load_avg_1m_after"] = round(os.getloadavg()[0], 2)
     report("render", result)
 

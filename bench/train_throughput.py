@@ -31,11 +31,47 @@ def make_dataset(root: Path, size: int) -> Path:
     from services.cli import main as viewscale
 
     raw, ds = root / "raw", root / "ds"
-    if viewscale(["collect", "--task", "lift", "--episodes", "2", "--rig", "three15", "--out", str(raw),
-                  "--size", str(size), "--fast"]) != 0:
+    if (
+        viewscale(
+            [
+                "collect",
+                "--task",
+                "lift",
+                "--episodes",
+                "2",
+                "--rig",
+                "three15",
+                "--out",
+                str(raw),
+                "--size",
+                str(size),
+                "--fast",
+            ]
+        )
+        != 0
+    ):
         raise SystemExit("collect failed")
-    if viewscale(["dataset", "build", "--raw", str(raw), "--views", "F,FL,FR", "--space", "camera", "--out", str(ds),
-                  "--image-size", f"{size}x{size}", "--contact-episodes", "0"]) != 0:
+    if (
+        viewscale(
+            [
+                "dataset",
+                "build",
+                "--raw",
+                str(raw),
+                "--views",
+                "F,FL,FR",
+                "--space",
+                "camera",
+                "--out",
+                str(ds),
+                "--image-size",
+                f"{size}x{size}",
+                "--contact-episodes",
+                "0",
+            ]
+        )
+        != 0
+    ):
         raise SystemExit("dataset build failed")
     return ds
 
@@ -93,33 +129,59 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="vs-train-bench-") as tmp:
         data = Path(args.data) if args.data else make_dataset(Path(tmp), args.size)
         stamps: list[float] = []
-        cfg = train_config_from_dict({
-            "preset": args.preset, "data": str(data), "out": str(Path(tmp) / "run"), "steps": args.warmup + args.steps,
-            "batch_size": args.batch, "device": args.device, "num_workers": args.workers, "progress": False,
-            "log_every": 1, "val_every": 0, "checkpoint_every": 0, "validate": False,
-        })
+        cfg = train_config_from_dict(
+            {
+                "preset": args.preset,
+                "data": str(data),
+                "out": str(Path(tmp) / "run"),
+                "steps": args.warmup + args.steps,
+                "batch_size": args.batch,
+                "device": args.device,
+                "num_workers": args.workers,
+                "progress": False,
+                "log_every": 1,
+                "val_every": 0,
+                "checkpoint_every": 0,
+                "validate": False,
+            }
+        )
         with GpuSampler() as gpu:
             result = train(cfg, on_progress=lambda ev: stamps.append(time.perf_counter()))
-        timed = stamps[args.warmup - 1:] if args.warmup > 0 else stamps
+        timed = stamps[args.warmup - 1 :] if args.warmup > 0 else stamps
         it_s = (len(timed) - 1) / (timed[-1] - timed[0])
-        device = "cuda" if (args.device == "auto" and torch.cuda.is_available()) or args.device.startswith("cuda") else "cpu"
-        from services.policy.model.policy import DiffusionPolicy, ModelConfig
+        device = (
+            "cuda" if (args.device == "auto" and torch.cuda.is_available()) or args.device.startswith("cuda") else "cpu"
+        )
         import json
 
-        params = DiffusionPolicy(ModelConfig.model_validate(
-            json.loads((Path(tmp) / "run" / "config.json").read_text())["model"]), load_pretrained=False).num_parameters()
-    report("train_throughput", {
-        "preset": args.preset, "batch": args.batch, "device": device,
-        "gpu": torch.cuda.get_device_name(0) if device == "cuda" else None,
-        "threads": torch.get_num_threads(), "workers": args.workers, "image": args.size,
-        "params_M": round(params / 1e6, 2), "steps_timed": len(timed) - 1,
-        "it_s": round(it_s, 3), "samples_s": round(it_s * args.batch, 1),
-        "data_wait": round(result.data_wait, 3), "loader_keeps_up": result.data_wait < 0.05,
-        "gpu_util_pct": gpu.mean if device == "cuda" else None,
-        "gpu_peak_mem_GiB": round(torch.cuda.max_memory_allocated() / 2**30, 2) if device == "cuda" else None,
-        "bf16": device == "cuda" and torch.cuda.is_bf16_supported(),
-        "final_loss": round(result.loss, 4) if result.loss is not None else None,
-    })
+        from services.policy.model.policy import DiffusionPolicy, ModelConfig
+
+        params = DiffusionPolicy(
+            ModelConfig.model_validate(json.loads((Path(tmp) / "run" / "config.json").read_text())["model"]),
+            load_pretrained=False,
+        ).num_parameters()
+    report(
+        "train_throughput",
+        {
+            "preset": args.preset,
+            "batch": args.batch,
+            "device": device,
+            "gpu": torch.cuda.get_device_name(0) if device == "cuda" else None,
+            "threads": torch.get_num_threads(),
+            "workers": args.workers,
+            "image": args.size,
+            "params_M": round(params / 1e6, 2),
+            "steps_timed": len(timed) - 1,
+            "it_s": round(it_s, 3),
+            "samples_s": round(it_s * args.batch, 1),
+            "data_wait": round(result.data_wait, 3),
+            "loader_keeps_up": result.data_wait < 0.05,
+            "gpu_util_pct": gpu.mean if device == "cuda" else None,
+            "gpu_peak_mem_GiB": round(torch.cuda.max_memory_allocated() / 2**30, 2) if device == "cuda" else None,
+            "bf16": device == "cuda" and torch.cuda.is_bf16_supported(),
+            "final_loss": round(result.loss, 4) if result.loss is not None else None,
+        },
+    )
 
 
 if __name__ == "__main__":

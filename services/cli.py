@@ -23,9 +23,9 @@ from pathlib import Path
 
 def _collect(args: argparse.Namespace) -> int:
     os.environ.setdefault("MUJOCO_GL", "egl")
-    from services.session.collect import CollectError, collect
     from services.core.config import ConfigError
     from services.core.rig import load_rig
+    from services.session.collect import CollectError, collect
 
     try:
         load_rig(args.rig)  # fail fast on a typo, before starting anything
@@ -41,15 +41,27 @@ def _collect(args: argparse.Namespace) -> int:
         # episode in progress is closed and kept (flagged) and every service is stopped.
         for sig in (signal.SIGTERM, signal.SIGINT):
             signal.signal(sig, _interrupt)
-        result = collect(args.task, args.episodes, args.rig, Path(args.out), config=args.config, seed=args.seed,
-                         size=args.size, realtime=not args.fast, control_hz=args.hz, max_ticks=args.max_ticks,
-                         extra=extra)
+        result = collect(
+            args.task,
+            args.episodes,
+            args.rig,
+            Path(args.out),
+            config=args.config,
+            seed=args.seed,
+            size=args.size,
+            realtime=not args.fast,
+            control_hz=args.hz,
+            max_ticks=args.max_ticks,
+            extra=extra,
+        )
     except (CollectError, ConfigError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt as exc:
-        print(f"interrupted ({exc or 'SIGINT'}): services stopped; episodes recorded so far are in {args.out}",
-              file=sys.stderr)
+        print(
+            f"interrupted ({exc or 'SIGINT'}): services stopped; episodes recorded so far are in {args.out}",
+            file=sys.stderr,
+        )
         return 130
     return 0 if len(result.recorded) >= args.episodes else 1
 
@@ -66,13 +78,24 @@ def _episode(args: argparse.Namespace) -> int:
     from services.core.bus import Bus, BusConfig
     from services.pb.episode_pb2 import EpisodeCommand, EpisodeReply, EpisodeRequest
 
-    command = {"start": EpisodeCommand.EPISODE_COMMAND_START, "stop": EpisodeCommand.EPISODE_COMMAND_STOP,
-               "discard": EpisodeCommand.EPISODE_COMMAND_DISCARD, "status": EpisodeCommand.EPISODE_COMMAND_STATUS}
+    command = {
+        "start": EpisodeCommand.EPISODE_COMMAND_START,
+        "stop": EpisodeCommand.EPISODE_COMMAND_STOP,
+        "discard": EpisodeCommand.EPISODE_COMMAND_DISCARD,
+        "status": EpisodeCommand.EPISODE_COMMAND_STATUS,
+    }
     episode_id = args.id
     if args.action == "start" and not episode_id:
         episode_id = f"{args.task}-{args.rig}-{datetime.now(timezone.utc).strftime('%Y%m%dT%H%M%S')}"
-    req = EpisodeRequest(command=command[args.action], episode_id=episode_id or "", task=args.task, rig=args.rig,
-                         seed=args.seed, control_hz=args.hz, success=args.success)
+    req = EpisodeRequest(
+        command=command[args.action],
+        episode_id=episode_id or "",
+        task=args.task,
+        rig=args.rig,
+        seed=args.seed,
+        control_hz=args.hz,
+        success=args.success,
+    )
     try:
         with Bus(BusConfig(mode="client", connect=[args.connect], connect_timeout_s=min(args.timeout, 5.0))) as bus:
             reply = EpisodeReply.FromString(bus.query(topics.EPISODE_CONTROL, req.SerializeToString(), args.timeout))
@@ -86,8 +109,10 @@ def _episode(args: argparse.Namespace) -> int:
     state = "recording" if reply.recording else "idle"
     print(f"{args.action}: ok ({state})" + (f" episode {m.episode_id}" if m.episode_id else ""))
     if m.path:
-        print(f"  {m.path}: {m.ticks} ticks, {m.achieved_hz:.1f} Hz, frames {dict(m.frames)}, "
-              f"drops {sum(m.drops.values())}" + (f", flags: {'; '.join(m.flags)}" if m.flags else ""))
+        print(
+            f"  {m.path}: {m.ticks} ticks, {m.achieved_hz:.1f} Hz, frames {dict(m.frames)}, "
+            f"drops {sum(m.drops.values())}" + (f", flags: {'; '.join(m.flags)}" if m.flags else "")
+        )
     return 0
 
 
@@ -124,8 +149,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-ticks", type=int, default=None, help="per-episode tick limit (default per task)")
     p.add_argument("--fast", action="store_true", help="lockstep instead of real time: as fast as the machine goes")
     p.add_argument("--config", default=None, help="YAML with per-service sections (e.g. deploy/sim.yaml)")
-    p.add_argument("--set", action="append", default=[], metavar="SERVICE.KEY=VALUE",
-                   help="override a service's config field, e.g. sim.jpeg_quality=80 (repeatable)")
+    p.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="SERVICE.KEY=VALUE",
+        help="override a service's config field, e.g. sim.jpeg_quality=80 (repeatable)",
+    )
     p.set_defaults(func=_collect)
 
     p = sub.add_parser("episode", help="start/stop/discard/status of the recorder's episode (hardware sessions)")
@@ -152,8 +182,10 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    logging.basicConfig(level=getattr(logging, str(args.log_level).upper(), logging.WARNING),
-                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    logging.basicConfig(
+        level=getattr(logging, str(args.log_level).upper(), logging.WARNING),
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+    )
     return int(args.func(args) or 0)
 
 

@@ -30,12 +30,12 @@ if TYPE_CHECKING:
 class SimCamera(CameraDriver):
     """The rig's cameras rendered from a ``SimWorld``; its scene holds one MuJoCo camera per rig camera."""
 
-    def __init__(self, world: "SimWorld", width: int, height: int):
+    def __init__(self, world: SimWorld, width: int, height: int):
         self.world = world
         self._size = (width, height)
 
     @classmethod
-    def from_config(cls, cfg: "SimCameraConfig", *, rig: Rig, width: int, height: int) -> "SimCamera":
+    def from_config(cls, cfg: SimCameraConfig, *, rig: Rig, width: int, height: int) -> SimCamera:
         from sim.world import SimWorld  # MuJoCo: only for the drivers that simulate
 
         world = SimWorld(cfg.task, rig, width, height)
@@ -61,11 +61,11 @@ class SimCamera(CameraDriver):
 class SimRobot(RobotDriver):
     """The simulated arm of a ``SimWorld`` (shared with the simulated cameras in the sim service)."""
 
-    def __init__(self, world: "SimWorld"):
+    def __init__(self, world: SimWorld):
         self.world = world
 
     @classmethod
-    def from_config(cls, cfg: "SimRobotConfig", *, control_hz: float) -> "SimRobot":
+    def from_config(cls, cfg: SimRobotConfig, *, control_hz: float) -> SimRobot:
         from sim.world import SimWorld  # MuJoCo: only for the drivers that simulate
 
         world = SimWorld(cfg.task, load_rig("front"), control_hz=control_hz)

@@ -19,15 +19,6 @@ from abc import ABC, abstractmethod
 
 import numpy as np
 
-from sim.tasks import (
-    CAN_HALF_HEIGHT,
-    CUBE_HALF,
-    NUT_GRASP_OFFSET,
-    NUT_HALF_THICK,
-    PEG_HEIGHT,
-    TASKS,
-)
-from services.core.robot_types import ObjectPose, RobotSnapshot
 from services.core.geometry import (
     clip_norm,
     matrix_to_rotvec,
@@ -35,6 +26,15 @@ from services.core.geometry import (
     quat_wxyz_to_matrix,
     quat_yaw,
     rot_z,
+)
+from services.core.robot_types import ObjectPose, RobotSnapshot
+from sim.tasks import (
+    CAN_HALF_HEIGHT,
+    CUBE_HALF,
+    NUT_GRASP_OFFSET,
+    NUT_HALF_THICK,
+    PEG_HEIGHT,
+    TASKS,
 )
 
 Action = tuple[np.ndarray, np.ndarray, float]

@@ -9,7 +9,6 @@ The damping keeps the step bounded near singularities at the cost of some accura
 
 from __future__ import annotations
 
-
 from dataclasses import dataclass
 
 import mujoco

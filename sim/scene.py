@@ -17,7 +17,6 @@ from __future__ import annotations
 
 from xml.sax.saxutils import quoteattr
 
-
 import mujoco
 import numpy as np
 
@@ -96,7 +95,9 @@ def _camera_xml(rig: Rig) -> str:
     for cam in rig.cameras.values():
         pos = " ".join(f"{v:.17g}" for v in cam.position)
         xyaxes = " ".join(f"{v:.17g}" for v in cam.mujoco_xyaxes)
-        lines.append(f'    <camera name={quoteattr(cam.name)} pos="{pos}" xyaxes="{xyaxes}" fovy="{cam.fovy_deg:.17g}"/>')
+        lines.append(
+            f'    <camera name={quoteattr(cam.name)} pos="{pos}" xyaxes="{xyaxes}" fovy="{cam.fovy_deg:.17g}"/>'
+        )
     return "\n".join(lines)
 
 
@@ -180,8 +181,10 @@ class MultiCameraRenderer:
         try:
             self._gl = mujoco.GLContext(width, height)
         except Exception as exc:  # GLFW on a machine without a display, most often
-            raise RuntimeError(f"cannot create an OpenGL context for rendering ({exc}); for headless rendering "
-                               "set MUJOCO_GL=egl (or osmesa) before mujoco is imported") from exc
+            raise RuntimeError(
+                f"cannot create an OpenGL context for rendering ({exc}); for headless rendering "
+                "set MUJOCO_GL=egl (or osmesa) before mujoco is imported"
+            ) from exc
         with self._gl.as_current():
             self._ctx = mujoco.MjrContext(model, mujoco.mjtFontScale.mjFONTSCALE_100)
             mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN, self._ctx)

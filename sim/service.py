@@ -50,8 +50,13 @@ class SimService:
         self._task_pub = bus.publisher(topics.TASK_STATE)
         self._task_seq = 0
         self.loop = ControlLoop(
-            bus, Safety(self.robot, cfg.safety, cfg.control_hz), cfg.control_hz, cfg.realtime, cfg.command_timeout_s,
-            cfg.command_wait_fraction, observers=[self._observe],
+            bus,
+            Safety(self.robot, cfg.safety, cfg.control_hz),
+            cfg.control_hz,
+            cfg.realtime,
+            cfg.command_timeout_s,
+            cfg.command_wait_fraction,
+            observers=[self._observe],
         )
         self.running = False
         self._jobs: queue.Queue[tuple[SimControlRequest, Future]] = queue.Queue()
@@ -60,7 +65,7 @@ class SimService:
         bus.queryable(topics.SIM_CONTROL, self._on_control)
 
     # -- lifecycle ----------------------------------------------------------------------
-    def __enter__(self) -> "SimService":
+    def __enter__(self) -> SimService:
         self.cameras.publish_calibration(now_ns())
         self._calib_thread.start()
         self.bus.announce("sim")
@@ -81,12 +86,16 @@ class SimService:
         self._task_seq += 1
         msg = TaskState(
             header=Header(stamp_ns=stamp_ns, seq=self._task_seq, frame_id=topics.WORLD_FRAME),
-            tick=tick, task=self.world.task, seed=self.seed, episode_id=self.loop.episode_id,
+            tick=tick,
+            task=self.world.task,
+            seed=self.seed,
+            episode_id=self.loop.episode_id,
             success=bool(self.world.success()),
         )
         for name, pose in self.world.objects().items():
-            msg.objects.append(ObjectPose(name=name, pos=[float(v) for v in pose.pos],
-                                          quat_wxyz=[float(v) for v in pose.quat_wxyz]))
+            msg.objects.append(
+                ObjectPose(name=name, pos=[float(v) for v in pose.pos], quat_wxyz=[float(v) for v in pose.quat_wxyz])
+            )
         self._task_pub.put(msg)
 
     # -- episode control ----------------------------------------------------------------
@@ -161,8 +170,12 @@ class SimService:
             self.loop.step()
             if self.cfg.realtime:
                 rate.sleep()
-        log.info("sim stopped at tick %d (%d stale ticks, %d rejected commands)",
-                 self.loop.tick, self.loop.stale_ticks, sum(self.loop.rejected.values()))
+        log.info(
+            "sim stopped at tick %d (%d stale ticks, %d rejected commands)",
+            self.loop.tick,
+            self.loop.stale_ticks,
+            sum(self.loop.rejected.values()),
+        )
 
 
 def main(cfg: SimConfig) -> int:

@@ -18,8 +18,6 @@ machine and MuJoCo build; rendering does not perturb it).
 
 from __future__ import annotations
 
-
-
 import math
 import numbers
 
@@ -215,9 +213,7 @@ class SimWorld:
 
     def objects(self) -> dict[str, ObjectPose]:
         d = self.data
-        return {
-            name: ObjectPose(pos=d.xpos[b].copy(), quat_wxyz=d.xquat[b].copy()) for name, b in self._bodies.items()
-        }
+        return {name: ObjectPose(pos=d.xpos[b].copy(), quat_wxyz=d.xquat[b].copy()) for name, b in self._bodies.items()}
 
     def success(self) -> bool:
         return self._task.success(self.objects())
@@ -241,7 +237,7 @@ class SimWorld:
             self._renderer.close()
             self._renderer = None
 
-    def __enter__(self) -> "SimWorld":
+    def __enter__(self) -> SimWorld:
         return self
 
     def __exit__(self, *exc) -> None:

@@ -76,8 +76,44 @@ def sim_dataset(tmp_path_factory) -> Path:
 
     root = tmp_path_factory.mktemp("sim")
     raw, ds = root / "raw", root / "ds"
-    assert viewscale(["collect", "--task", "lift", "--episodes", "2", "--rig", "three15", "--out", str(raw),
-                      "--size", "32", "--fast"]) == 0
-    assert viewscale(["dataset", "build", "--raw", str(raw), "--views", ",".join(SIM_VIEWS), "--space", "camera",
-                      "--out", str(ds), "--image-size", "32x32", "--contact-episodes", "0"]) == 0
+    assert (
+        viewscale(
+            [
+                "collect",
+                "--task",
+                "lift",
+                "--episodes",
+                "2",
+                "--rig",
+                "three15",
+                "--out",
+                str(raw),
+                "--size",
+                "32",
+                "--fast",
+            ]
+        )
+        == 0
+    )
+    assert (
+        viewscale(
+            [
+                "dataset",
+                "build",
+                "--raw",
+                str(raw),
+                "--views",
+                ",".join(SIM_VIEWS),
+                "--space",
+                "camera",
+                "--out",
+                str(ds),
+                "--image-size",
+                "32x32",
+                "--contact-episodes",
+                "0",
+            ]
+        )
+        == 0
+    )
     return ds

@@ -29,7 +29,7 @@ class CameraDriver(ABC):
     synchronise them (one render pass in sim, a hardware trigger on a real rig)."""
 
     @classmethod
-    def from_config(cls, cfg: Any, *, rig: Rig, width: int, height: int) -> "CameraDriver":
+    def from_config(cls, cfg: Any, *, rig: Rig, width: int, height: int) -> CameraDriver:
         """Build from the driver's typed config and the service's rig and frame size."""
         return cls(cfg, rig=rig, width=width, height=height)  # type: ignore[call-arg]
 

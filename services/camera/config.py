@@ -37,6 +37,6 @@ class CameraConfig(Frozen):
     log_level: str = "INFO"  # logging level of the process
 
     @model_validator(mode="after")
-    def _world(self) -> "CameraConfig":
+    def _world(self) -> CameraConfig:
         check_world(self.driver, self.world, "camera")
         return self

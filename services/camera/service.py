@@ -33,7 +33,7 @@ class CameraService:
         self.driver = driver
         self.publisher = CameraPublisher(bus, driver, cfg.jpeg_quality)
 
-    def __enter__(self) -> "CameraService":
+    def __enter__(self) -> CameraService:
         self.bus.announce("camera")
         return self
 

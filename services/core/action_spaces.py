@@ -30,6 +30,7 @@ from __future__ import annotations
 from typing import Literal
 
 import numpy as np
+
 from services.core.geometry import rot6d, rotvec_to_matrix
 
 ActionSpace = Literal["base", "eef", "camera"]
@@ -39,8 +40,15 @@ STATE_FRAMES: tuple[str, ...] = ("auto", "base", "camera")
 
 ACTION_DIM = 7  # dp (3), drot (3), gripper (1)
 STATE_NAMES: tuple[str, ...] = (
-    "pos_x", "pos_y", "pos_z",
-    "rot6d_0", "rot6d_1", "rot6d_2", "rot6d_3", "rot6d_4", "rot6d_5",
+    "pos_x",
+    "pos_y",
+    "pos_z",
+    "rot6d_0",
+    "rot6d_1",
+    "rot6d_2",
+    "rot6d_3",
+    "rot6d_4",
+    "rot6d_5",
     "gripper",
 )
 STATE_DIM = len(STATE_NAMES)

@@ -11,8 +11,9 @@ import json
 import logging
 import socket
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable, Literal
+from typing import Literal
 
 import zenoh
 from google.protobuf.message import DecodeError, Message
@@ -88,12 +89,14 @@ class Bus:
             self.session = zenoh.open(_zenoh_config(cfg))
         except zenoh.ZError as exc:
             where = ", ".join(cfg.connect) or "(no endpoint)"
-            raise ConnectionError(f"cannot open a Zenoh {cfg.mode} session to {where} "
-                                  f"within {cfg.connect_timeout_s:.0f}s (is the router running?): {exc}") from exc
+            raise ConnectionError(
+                f"cannot open a Zenoh {cfg.mode} session to {where} "
+                f"within {cfg.connect_timeout_s:.0f}s (is the router running?): {exc}"
+            ) from exc
         self._keep: list[object] = []  # declared entities live as long as the bus
 
     # -- context management -------------------------------------------------------------
-    def __enter__(self) -> "Bus":
+    def __enter__(self) -> Bus:
         return self
 
     def __exit__(self, *exc) -> None:
@@ -191,7 +194,7 @@ class Bus:
         names = set()
         for reply in self.session.liveliness().get(prefix + "**", timeout=timeout):
             if reply.ok is not None:
-                names.add(str(reply.ok.key_expr)[len(prefix):])
+                names.add(str(reply.ok.key_expr)[len(prefix) :])
         return names
 
     def wait_alive(self, services: set[str] | list[str], timeout: float = 30.0) -> None:
@@ -211,7 +214,7 @@ class Bus:
         prefix = self.key("alive/")
 
         def on_sample(sample: zenoh.Sample) -> None:
-            callback(str(sample.key_expr)[len(prefix):], sample.kind == zenoh.SampleKind.PUT)
+            callback(str(sample.key_expr)[len(prefix) :], sample.kind == zenoh.SampleKind.PUT)
 
         sub = self.session.liveliness().declare_subscriber(prefix + "**", on_sample, history=True)
         self._keep.append(sub)

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import argparse
 import sys
-from typing import Callable, TypeVar
+from collections.abc import Callable
+from typing import TypeVar
 
 from services.core.config import ConfigError, load_config
 from services.core.runtime import configure_logging
@@ -22,8 +23,14 @@ def service_main(
         "< VIEWSCALE_<FIELD>=value < --set field=value.",
     )
     parser.add_argument("--config", help="YAML file with a section per service (e.g. deploy/sim.yaml)")
-    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
-                        help="override a config field, dotted for nested ones (repeatable)")
+    parser.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override a config field, dotted for nested ones (repeatable)",
+    )
     args = parser.parse_args(argv)
     try:
         cfg = load_config(model, args.config, args.overrides, section=name)

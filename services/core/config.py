@@ -1,15 +1,17 @@
 """Configuration: frozen pydantic models, loaded with one precedence rule.
 
 defaults (the model) < a base layer (the trainer's preset) < YAML file < environment
-(VIEWSCALE_SECTION__FIELD=value) < CLI overrides (``--set section.field=value``). Values from env and CLI are parsed as YAML scalars/flow values,
-so ``--set bus.connect=[tcp/127.0.0.1:7447]`` and ``VIEWSCALE_CONTROL_HZ=20`` both work.
+(VIEWSCALE_SECTION__FIELD=value) < CLI overrides (``--set section.field=value``). Values from env
+and CLI are parsed as YAML scalars/flow values, so ``--set bus.connect=[tcp/127.0.0.1:7447]`` and
+``VIEWSCALE_CONTROL_HZ=20`` both work.
 """
 
 from __future__ import annotations
 
 import os
+from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
-from typing import Any, Callable, Iterable, Mapping, TypeVar
+from typing import Any, TypeVar
 
 import yaml
 from pydantic import BaseModel, ConfigDict, ValidationError
@@ -72,7 +74,7 @@ def env_overrides(environ: Mapping[str, str], prefix: str = ENV_PREFIX) -> dict[
     for name, raw in environ.items():
         if not name.startswith(prefix) or name == prefix + "CONFIG":
             continue
-        path = [p.lower() for p in name[len(prefix):].split("__") if p]
+        path = [p.lower() for p in name[len(prefix) :].split("__") if p]
         if path:
             merged = deep_merge(merged, _nest(path, _parse_value(raw)))
     return merged
@@ -92,7 +94,9 @@ def read_yaml(path: str | Path) -> dict[str, Any]:
 
 
 def validate_config(
-    model: type[M], data: Mapping[str, Any], base: Callable[[Mapping[str, Any]], dict[str, Any]] | None = None,
+    model: type[M],
+    data: Mapping[str, Any],
+    base: Callable[[Mapping[str, Any]], dict[str, Any]] | None = None,
     source: str = "",
 ) -> M:
     """Validate ``data`` as ``model``, over the base layer ``base(data)`` when given (a preset named

@@ -20,9 +20,10 @@ hold ``action_offset``/``action_scale`` as buffers. numpy only; serialised as a 
 from __future__ import annotations
 
 import json
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any
 
 import numpy as np
 
@@ -47,7 +48,7 @@ class Normalizer:
     @classmethod
     def fit(
         cls, actions: Iterable[np.ndarray], states: Iterable[np.ndarray], state_names: Iterable[str] = ()
-    ) -> "Normalizer":
+    ) -> Normalizer:
         """Fit over every pseudo-demo: ``actions`` and ``states`` are iterables of (N_i, 7) and (N_i, D)."""
         acc = NormalizerStats()
         for a in actions:
@@ -117,7 +118,7 @@ class Normalizer:
         }
 
     @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> "Normalizer":
+    def from_dict(cls, d: dict[str, Any]) -> Normalizer:
         if d.get("version") != VERSION:
             raise ValueError(f"normalizer version {d.get('version')!r} is not {VERSION}")
         a, s, im = d["action"], d["state"], d["image"]
@@ -137,7 +138,7 @@ class Normalizer:
         Path(path).write_text(json.dumps(self.to_dict(), indent=2) + "\n")
 
     @classmethod
-    def load(cls, path: str | Path) -> "Normalizer":
+    def load(cls, path: str | Path) -> Normalizer:
         return cls.from_dict(json.loads(Path(path).read_text()))
 
 

@@ -46,8 +46,10 @@ def check_world(driver: Any, world: World, concept: str) -> None:
     """Refuse a sim-only driver in a real-world session, at start-up rather than tick by tick."""
     if world == "real" and getattr(driver, "sim_only", False):
         why = " ".join((type(driver).__doc__ or "").split())
-        raise ValueError(f"{concept} driver {driver.type!r} only works in sim (world: real): {why} "
-                         "Pick a driver for hardware, or world: sim")
+        raise ValueError(
+            f"{concept} driver {driver.type!r} only works in sim (world: real): {why} "
+            "Pick a driver for hardware, or world: sim"
+        )
 
 
 class ExternalDriverConfig(Frozen):
@@ -118,14 +120,16 @@ class Registry(Generic[T]):
             @classmethod
             def _known(cls, v: Any) -> Any:
                 if not isinstance(v, str) or not _CLASS_PATH.match(v):
-                    raise ValueError(f"unknown {concept} driver {v!r}: choose one of {', '.join(names)} "
-                                     "or give your own class as package.module:ClassName")
+                    raise ValueError(
+                        f"unknown {concept} driver {v!r}: choose one of {', '.join(names)} "
+                        "or give your own class as package.module:ClassName"
+                    )
                 return v
 
         External.__name__ = External.__qualname__ = f"External{concept.title()}DriverConfig"
         members = [Annotated[e.config, Tag(e.name)] for e in self._entries.values()]
         members.append(Annotated[External, Tag(EXTERNAL)])
-        return Annotated[Union[tuple(members)], Discriminator(tag)]
+        return Annotated[Union[tuple(members)], Discriminator(tag)]  # noqa: UP007  (a union built at run time)
 
     def resolve(self, cfg: DriverConfig | ExternalDriverConfig) -> tuple[type[T], Any]:
         """The driver class for ``cfg`` and the typed config to build it with."""
@@ -143,8 +147,10 @@ class Registry(Generic[T]):
                 except ValidationError as exc:
                     raise ConfigError(f"invalid settings for {self.concept} driver {cfg.type}:\n{exc}") from exc
             elif settings:
-                raise ConfigError(f"{self.concept} driver {cfg.type} declares no Config, so it takes no "
-                                  f"settings (got {', '.join(sorted(settings))})")
+                raise ConfigError(
+                    f"{self.concept} driver {cfg.type} declares no Config, so it takes no "
+                    f"settings (got {', '.join(sorted(settings))})"
+                )
             else:
                 typed = None
         if not (isinstance(cls, type) and issubclass(cls, self.base)):

@@ -119,7 +119,7 @@ class Camera:
         return msg
 
     @classmethod
-    def from_msgs(cls, calib: CameraCalibration, pose: FrameTransform) -> tuple["Camera", np.ndarray]:
+    def from_msgs(cls, calib: CameraCalibration, pose: FrameTransform) -> tuple[Camera, np.ndarray]:
         """Rebuild a camera and its K from published (or recorded) messages."""
         q = pose.rotation
         R_wc = Rotation.from_quat([q.x, q.y, q.z, q.w]).as_matrix()
@@ -159,9 +159,12 @@ class Rig:
         for name, cam in spec.cameras.items():
             fovy = cam.fovy_deg if cam.fovy_deg is not None else spec.fovy_deg
             if cam.azimuth_deg is not None or cam.elevation_deg is not None:
-                position = _orbit(center, cam.distance or spec.distance,
-                                  spec.azimuth_deg if cam.azimuth_deg is None else cam.azimuth_deg,
-                                  spec.elevation_deg if cam.elevation_deg is None else cam.elevation_deg)
+                position = _orbit(
+                    center,
+                    cam.distance or spec.distance,
+                    spec.azimuth_deg if cam.azimuth_deg is None else cam.azimuth_deg,
+                    spec.elevation_deg if cam.elevation_deg is None else cam.elevation_deg,
+                )
                 self.cameras[name] = Camera(name, position, look_at(position, center), fovy)
                 continue
             # A rigid rotation of the base camera about axes through the centre: the camera

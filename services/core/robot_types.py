@@ -27,7 +27,7 @@ class EefDelta:
     gripper: float  # target closure in [0, 1]
 
     @classmethod
-    def hold(cls, gripper: float) -> "EefDelta":
+    def hold(cls, gripper: float) -> EefDelta:
         return cls(np.zeros(3), np.zeros(3), float(gripper))
 
 

@@ -15,11 +15,12 @@ import json
 import os
 import shutil
 import time
+from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Any
 
 import cv2
 import numpy as np
@@ -146,8 +147,12 @@ def find_episodes(raw: Path | list[Path]) -> list[Path]:
     return found
 
 
-_REDUCED = {8: cv2.IMREAD_REDUCED_COLOR_8, 4: cv2.IMREAD_REDUCED_COLOR_4, 2: cv2.IMREAD_REDUCED_COLOR_2,
-            1: cv2.IMREAD_COLOR}
+_REDUCED = {
+    8: cv2.IMREAD_REDUCED_COLOR_8,
+    4: cv2.IMREAD_REDUCED_COLOR_4,
+    2: cv2.IMREAD_REDUCED_COLOR_2,
+    1: cv2.IMREAD_COLOR,
+}
 
 
 class FrameSizeError(ValueError):
@@ -212,8 +217,10 @@ def build_episode(src: Path, sha: str, dest: Path, params: BuildParams) -> dict[
             try:
                 img = decode_resized(ep.frame_data[v][int(fi)], size, src_size)
             except FrameSizeError as exc:
-                raise EpisodeError(f"{src.name}: camera {v!r} frame at tick {int(pd.tick[row])} is {exc} "
-                                   f"but the camera's calibration says {src_size[0]}x{src_size[1]}") from None
+                raise EpisodeError(
+                    f"{src.name}: camera {v!r} frame at tick {int(pd.tick[row])} is {exc} "
+                    f"but the camera's calibration says {src_size[0]}x{src_size[1]}"
+                ) from None
             if img is None:
                 ok[row] = False
             else:
@@ -221,8 +228,16 @@ def build_episode(src: Path, sha: str, dest: Path, params: BuildParams) -> dict[
         frames_done += int(ok.sum())
         al.drops["views"][v]["bad_frame"] = int((~ok).sum())
         if not ok.all():  # an undecodable frame drops its tick for this view, like a missing one
-            pd = PseudoDemo(pd.episode_id, v, pd.tick[ok], pd.stamp_ns[ok], pd.frame_index[ok], pd.state[ok],
-                            pd.action[ok], segments(pd.tick[ok]))
+            pd = PseudoDemo(
+                pd.episode_id,
+                v,
+                pd.tick[ok],
+                pd.stamp_ns[ok],
+                pd.frame_index[ok],
+                pd.state[ok],
+                pd.action[ok],
+                segments(pd.tick[ok]),
+            )
             frames = frames[ok]
         np.save(dest / f"{v}.frames.npy", frames)
         np.save(dest / f"{v}.state.npy", pd.state.astype(np.float32))
@@ -241,8 +256,11 @@ def build_episode(src: Path, sha: str, dest: Path, params: BuildParams) -> dict[
         "episode_id": ep.episode_id,
         "source": {"path": str(src.resolve()), "sha256": sha, "size": src.stat().st_size},
         "key": params.array_key(),
-        "meta": {k: md.get(k) for k in ("task", "seed", "rig", "success", "control_hz", "achieved_hz", "flags",
-                                         "start_ns", "end_ns") if k in md},
+        "meta": {
+            k: md.get(k)
+            for k in ("task", "seed", "rig", "success", "control_hz", "achieved_hz", "flags", "start_ns", "end_ns")
+            if k in md
+        },
         "ticks": int(len(ep.state_tick)),
         "aligned_ticks": int(len(al.tick)),
         "max_frame_age_ns": al.frame_tolerance_ns,
@@ -266,8 +284,9 @@ def _build_one(src: Path, sha: str, tmp: Path, params: BuildParams) -> tuple[dic
         raise
 
 
-def _build_many(todo: list[Path], hashes: dict[Path, str], root: Path, params: BuildParams,
-                jobs: int) -> Iterator[tuple[dict | None, Exception | None, float]]:
+def _build_many(
+    todo: list[Path], hashes: dict[Path, str], root: Path, params: BuildParams, jobs: int
+) -> Iterator[tuple[dict | None, Exception | None, float]]:
     """Build ``todo`` into ``root/.tmp-<stem>``, yielding results in order; closing it cancels the rest.
 
     Threads, not processes: JPEG decoding, resizing, zstd and file writes release the GIL, and
@@ -309,8 +328,9 @@ def _check_output(out: Path) -> None:
         raise DatasetError(f"output {out} is a non-empty directory that is not a viewscale dataset")
 
 
-def _hash_sources(sources: list[Path], old: dict[str, Any], force: bool,
-                  progress: Callable[[str], None]) -> tuple[dict[Path, str], dict[Path, os.stat_result]]:
+def _hash_sources(
+    sources: list[Path], old: dict[str, Any], force: bool, progress: Callable[[str], None]
+) -> tuple[dict[Path, str], dict[Path, os.stat_result]]:
     """sha256 of every source; one whose path, size and mtime match the last build keeps its hash."""
     known = {e.get("path"): e for e in old.get("sources", []) if isinstance(e, dict)} if not force else {}
     stats = {s: s.stat() for s in sources}
@@ -329,13 +349,22 @@ def _hash_sources(sources: list[Path], old: dict[str, Any], force: bool,
     return hashes, stats
 
 
-def _manifest(params: BuildParams, sources: list[Path], hashes: dict[Path, str],
-              stats: dict[Path, os.stat_result]) -> dict[str, Any]:
+def _manifest(
+    params: BuildParams, sources: list[Path], hashes: dict[Path, str], stats: dict[Path, os.stat_result]
+) -> dict[str, Any]:
     return {
         "version": VERSION,
         "params": params.to_json(),
-        "sources": [{"path": str(s.resolve()), "sha256": hashes[s], "size": stats[s].st_size,
-                     "mtime_ns": stats[s].st_mtime_ns, "dir": s.stem} for s in sources],
+        "sources": [
+            {
+                "path": str(s.resolve()),
+                "sha256": hashes[s],
+                "size": stats[s].st_size,
+                "mtime_ns": stats[s].st_mtime_ns,
+                "dir": s.stem,
+            }
+            for s in sources
+        ],
     }
 
 
@@ -352,8 +381,9 @@ def _start_rebuild(out: Path) -> None:
         shutil.rmtree(leftover)
 
 
-def _reusable(out: Path, sources: list[Path], hashes: dict[Path, str], key: dict[str, Any],
-              force: bool) -> dict[Path, dict[str, Any]]:
+def _reusable(
+    out: Path, sources: list[Path], hashes: dict[Path, str], key: dict[str, Any], force: bool
+) -> dict[Path, dict[str, Any]]:
     """Episode directories of an earlier build made from the same bytes with the same array key."""
     reuse: dict[Path, dict[str, Any]] = {}
     for src in sources:
@@ -372,7 +402,9 @@ def _describe_built(info: dict[str, Any], views: tuple[str, ...], secs: float) -
     rows = ", ".join(f"{v} {info['views'][v]['rows']}" for v in views)
     dropped = "; ".join(
         f"{v} " + " ".join(f"{n} {k}" for k, n in c.items() if n)
-        for v, c in info["drops"]["views"].items() if any(c.values()))
+        for v, c in info["drops"]["views"].items()
+        if any(c.values())
+    )
     if info["drops"]["no_action"]:
         dropped = f"{info['drops']['no_action']} without action" + (f"; {dropped}" if dropped else "")
     return f"{info['ticks']} ticks -> rows {rows} ({secs:.1f} s)" + (f"; dropped {dropped}" if dropped else "")
@@ -387,8 +419,16 @@ class _Collected:
     frames: int = 0
 
 
-def _build_episodes(out: Path, sources: list[Path], hashes: dict[Path, str], reuse: dict[Path, dict[str, Any]],
-                    params: BuildParams, jobs: int, skip_bad: bool, progress: Callable[[str], None]) -> _Collected:
+def _build_episodes(
+    out: Path,
+    sources: list[Path],
+    hashes: dict[Path, str],
+    reuse: dict[Path, dict[str, Any]],
+    params: BuildParams,
+    jobs: int,
+    skip_bad: bool,
+    progress: Callable[[str], None],
+) -> _Collected:
     """Build what cannot be reused, rename each into place, report one line per episode."""
     got = _Collected()
     todo = [s for s in sources if s not in reuse]
@@ -465,9 +505,12 @@ def _cameras(episodes: list[dict[str, Any]], views: tuple[str, ...]) -> tuple[di
     for v in views:
         cals = [e["info"]["views"][v]["calib"] for e in episodes if e["info"]["views"][v]["calib"] is not None]
         cameras[v] = cals[0] if cals else None
-        varies[v] = any(not np.allclose(c["R_ext"], cals[0]["R_ext"], atol=1e-6)
-                        or not np.allclose(c["position"], cals[0]["position"], atol=1e-6)
-                        or not np.allclose(c["K"], cals[0]["K"], atol=1e-6) for c in cals[1:])
+        varies[v] = any(
+            not np.allclose(c["R_ext"], cals[0]["R_ext"], atol=1e-6)
+            or not np.allclose(c["position"], cals[0]["position"], atol=1e-6)
+            or not np.allclose(c["K"], cals[0]["K"], atol=1e-6)
+            for c in cals[1:]
+        )
     return cameras, varies
 
 
@@ -475,8 +518,11 @@ def _episode_view(info: dict[str, Any], camera: dict[str, Any] | None) -> dict[s
     """An episode's view entry in meta.json; its calibration only where it differs from the view's."""
     out: dict[str, Any] = {"rows": info["rows"]}
     c = info["calib"]
-    same = c is not None and camera is not None and all(
-        np.allclose(c[k], camera[k], atol=1e-9) for k in ("K", "R_ext", "position"))
+    same = (
+        c is not None
+        and camera is not None
+        and all(np.allclose(c[k], camera[k], atol=1e-9) for k in ("K", "R_ext", "position"))
+    )
     if not same:
         out["calib"] = c
     return out
@@ -501,10 +547,15 @@ def _meta(params: BuildParams, episodes: list[dict[str, Any]], train: list[str],
         "cameras": cameras,  # per view, from the first calibrated episode; an episode that differs says so
         "calibration_varies": varies,
         "episodes": [
-            {"id": e["id"], "dir": e["dir"], "source": e["info"]["source"]["path"],
-             "sha256": e["info"]["source"]["sha256"], "task": e["info"]["meta"].get("task"),
-             "success": e["info"]["meta"].get("success"),
-             "views": {v: _episode_view(e["info"]["views"][v], cameras[v]) for v in params.views}}
+            {
+                "id": e["id"],
+                "dir": e["dir"],
+                "source": e["info"]["source"]["path"],
+                "sha256": e["info"]["source"]["sha256"],
+                "task": e["info"]["meta"].get("task"),
+                "success": e["info"]["meta"].get("success"),
+                "views": {v: _episode_view(e["info"]["views"][v], cameras[v]) for v in params.views},
+            }
             for e in episodes
         ],
         "split": {"val_fraction": params.val_fraction, "seed": params.split_seed, "train": train, "val": val},
@@ -558,5 +609,13 @@ def build_dataset(
 
     manifest = dict(wanted, complete=True, built_at=datetime.now(timezone.utc).isoformat(timespec="seconds"))
     _write_json(out / MANIFEST, manifest)
-    return BuildResult(out, False, built=got.built, reused=got.reused, frames=got.frames,
-                       seconds=time.perf_counter() - t0, episode_seconds=episode_seconds, summary=summary)
+    return BuildResult(
+        out,
+        False,
+        built=got.built,
+        reused=got.reused,
+        frames=got.frames,
+        seconds=time.perf_counter() - t0,
+        episode_seconds=episode_seconds,
+        summary=summary,
+    )

@@ -17,9 +17,9 @@ from pathlib import Path
 
 from services.core.action_spaces import SPACES, STATE_FRAMES
 from services.dataset.build import BuildParams, build_dataset
+from services.dataset.episodes import EpisodeError
 from services.dataset.store import CONTACT_SHEET, DatasetError, DatasetStore
 from services.dataset.summary import format_summary
-from services.dataset.episodes import EpisodeError
 
 
 def _size(text: str) -> tuple[int, int]:
@@ -60,9 +60,16 @@ def _build(args: argparse.Namespace) -> int:
             val_fraction=args.val_fraction,
             split_seed=args.split_seed,
         )
-        result = build_dataset([Path(p) for p in args.raw], Path(args.out), params, progress=progress,
-                               skip_bad=args.skip_bad, force=args.force, contact_episodes=args.contact_episodes,
-                               jobs=args.jobs)
+        result = build_dataset(
+            [Path(p) for p in args.raw],
+            Path(args.out),
+            params,
+            progress=progress,
+            skip_bad=args.skip_bad,
+            force=args.force,
+            contact_episodes=args.contact_episodes,
+            jobs=args.jobs,
+        )
     except (DatasetError, EpisodeError) as exc:
         return _err(str(exc))
     except OSError as exc:  # an unwritable output, a full disk
@@ -75,8 +82,10 @@ def _build(args: argparse.Namespace) -> int:
     if result.up_to_date:
         print("  (up to date: nothing rebuilt)")
     else:
-        print(f"  built {result.built} episodes, reused {result.reused}, {result.frames} frames decoded "
-              f"in {result.seconds:.1f} s")
+        print(
+            f"  built {result.built} episodes, reused {result.reused}, {result.frames} frames decoded "
+            f"in {result.seconds:.1f} s"
+        )
     if args.contact_episodes > 0:
         print(f"  contact sheet {result.out / CONTACT_SHEET}")
     return 0
@@ -107,28 +116,52 @@ def add_dataset_commands(subparsers: argparse._SubParsersAction) -> None:
     b.add_argument("--raw", nargs="+", default=["data/raw"], help="directory of episode .mcap files, or files")
     b.add_argument("--views", required=True, help="comma-separated camera names, e.g. F,FL,FR,FU,FD")
     b.add_argument("--space", default="camera", choices=SPACES, help="action space (default camera)")
-    b.add_argument("--state-frame", default="auto", choices=STATE_FRAMES,
-                   help="frame of the robot state input; auto follows the action space (default)")
+    b.add_argument(
+        "--state-frame",
+        default="auto",
+        choices=STATE_FRAMES,
+        help="frame of the robot state input; auto follows the action space (default)",
+    )
     b.add_argument("--out", default="data/ds", help="dataset directory (default data/ds)")
-    b.add_argument("--image-size", type=_size, default=(84, 84), metavar="WxH",
-                   help="cached frame size, 84 or WxH (default 84x84)")
-    b.add_argument("--max-frame-age-ms", type=float, default=None,
-                   help="a frame older than this at its tick is stale (default per camera: its median age at a "
-                        "tick plus half its frame interval; half a period in sim)")
-    b.add_argument("--drop-stale-actions", action="store_true",
-                   help="also drop ticks where the robot held still for want of a command (kept by default)")
+    b.add_argument(
+        "--image-size", type=_size, default=(84, 84), metavar="WxH", help="cached frame size, 84 or WxH (default 84x84)"
+    )
+    b.add_argument(
+        "--max-frame-age-ms",
+        type=float,
+        default=None,
+        help="a frame older than this at its tick is stale (default per camera: its median age at a "
+        "tick plus half its frame interval; half a period in sim)",
+    )
+    b.add_argument(
+        "--drop-stale-actions",
+        action="store_true",
+        help="also drop ticks where the robot held still for want of a command (kept by default)",
+    )
     b.add_argument("--To", type=int, default=2, help="observation horizon (default 2)")
     b.add_argument("--Tp", type=int, default=16, help="prediction horizon (default 16)")
     b.add_argument("--Ta", type=int, default=8, help="executed action steps, sets end padding (default 8)")
-    b.add_argument("--pad-actions", default="edge", choices=("edge", "hold"),
-                   help="edge: repeat the edge action (diffusion_policy, default); hold: zero motion")
-    b.add_argument("--val-fraction", type=float, default=0.1,
-                   help="share of episodes held out for validation; the normaliser never sees them (default 0.1)")
+    b.add_argument(
+        "--pad-actions",
+        default="edge",
+        choices=("edge", "hold"),
+        help="edge: repeat the edge action (diffusion_policy, default); hold: zero motion",
+    )
+    b.add_argument(
+        "--val-fraction",
+        type=float,
+        default=0.1,
+        help="share of episodes held out for validation; the normaliser never sees them (default 0.1)",
+    )
     b.add_argument("--split-seed", type=int, default=0, help="seeds which episodes are held out (default 0)")
     b.add_argument("--skip-bad", action="store_true", help="skip unreadable episodes instead of stopping")
     b.add_argument("--force", action="store_true", help="rebuild every episode even if nothing changed")
-    b.add_argument("--jobs", type=int, default=min(8, os.cpu_count() or 1),
-                   help="episodes decoded at once (default: CPU cores, at most 8)")
+    b.add_argument(
+        "--jobs",
+        type=int,
+        default=min(8, os.cpu_count() or 1),
+        help="episodes decoded at once (default: CPU cores, at most 8)",
+    )
     b.add_argument("--contact-episodes", type=int, default=3, help="episodes on the contact sheet (0: none)")
     b.add_argument("--json", action="store_true", help="print the summary as one JSON line")
     b.set_defaults(func=_build)

@@ -43,8 +43,9 @@ def _project_cam(points_cam: np.ndarray, K: np.ndarray) -> np.ndarray:
     return out
 
 
-def trajectories(state: np.ndarray, action: np.ndarray, ends: np.ndarray, space: str, state_frame: str,
-                 calib: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
+def trajectories(
+    state: np.ndarray, action: np.ndarray, ends: np.ndarray, space: str, state_frame: str, calib: dict[str, Any]
+) -> tuple[np.ndarray, np.ndarray]:
     """EEF positions in the camera's optical frame: (state path, action-integrated path), (n, 3) each.
 
     The action path restarts from the state at each segment start and then only sums actions.
@@ -97,21 +98,37 @@ def _draw_run(img, run, color, thickness) -> None:
         cv2.polylines(img, [pts], False, color, thickness, cv2.LINE_AA, shift=4)
 
 
-def draw_tile(frame: np.ndarray, row: int, pos_cam: np.ndarray, path: np.ndarray, K: np.ndarray, Tp: int,
-              axes_cam: np.ndarray | None, label: str, size: tuple[int, int]) -> np.ndarray:
+def draw_tile(
+    frame: np.ndarray,
+    row: int,
+    pos_cam: np.ndarray,
+    path: np.ndarray,
+    K: np.ndarray,
+    Tp: int,
+    axes_cam: np.ndarray | None,
+    label: str,
+    size: tuple[int, int],
+) -> np.ndarray:
     img = cv2.resize(np.ascontiguousarray(frame), size, interpolation=cv2.INTER_NEAREST)
     if K is not None:
         _polyline(img, _project_cam(pos_cam, K), WHITE, 1)
         _polyline(img, _project_cam(path, K), CYAN, 1)
-        _polyline(img, _project_cam(path[row:row + Tp], K), MAGENTA, 2)
+        _polyline(img, _project_cam(path[row : row + Tp], K), MAGENTA, 2)
         if axes_cam is not None:
             o = _project_cam(axes_cam[0:1], K)[0]
             for i in range(3):
-                e = _project_cam(axes_cam[i + 1:i + 2], K)[0]
+                e = _project_cam(axes_cam[i + 1 : i + 2], K)[0]
                 if np.all(np.isfinite(o)) and np.all(np.isfinite(e)):
-                    cv2.arrowedLine(img, tuple(int(x) for x in np.round(o)), tuple(int(x) for x in np.round(e)),
-                                    AXES[i], 1, cv2.LINE_AA, tipLength=0.25)
-        c = _project_cam(pos_cam[row:row + 1], K)[0]
+                    cv2.arrowedLine(
+                        img,
+                        tuple(int(x) for x in np.round(o)),
+                        tuple(int(x) for x in np.round(e)),
+                        AXES[i],
+                        1,
+                        cv2.LINE_AA,
+                        tipLength=0.25,
+                    )
+        c = _project_cam(pos_cam[row : row + 1], K)[0]
         if np.all(np.isfinite(c)) and np.all(np.abs(c) < 1e5):
             cv2.circle(img, (int(round(c[0])), int(round(c[1]))), 3, YELLOW, -1, cv2.LINE_AA)
     out = np.zeros((size[1] + LABEL_H, size[0], 3), np.uint8)
@@ -137,8 +154,11 @@ def contact_sheet(ds_dir: Path, meta: dict[str, Any], max_episodes: int = 3, til
             n = len(frames)
             if n == 0:
                 blank = np.zeros((tile[1], tile[0], 3), np.uint8)
-                tiles += [draw_tile(blank, 0, np.zeros((0, 3)), np.zeros((0, 3)), None, Tp, None,
-                                    f"{v} #{ei}: no frames", tile)] * 3
+                tiles += [
+                    draw_tile(
+                        blank, 0, np.zeros((0, 3)), np.zeros((0, 3)), None, Tp, None, f"{v} #{ei}: no frames", tile
+                    )
+                ] * 3
                 continue
             state, action = np.load(d / f"{v}.state.npy"), np.load(d / f"{v}.action.npy")
             tick, ends = np.load(d / f"{v}.tick.npy"), np.load(d / f"{v}.ends.npy")
@@ -151,13 +171,25 @@ def contact_sheet(ds_dir: Path, meta: dict[str, Any], max_episodes: int = 3, til
                 pts = np.vstack([p0, p0 + 0.1 * np.eye(3)])
                 axes_cam = (pts - cam_pos) @ R_ext.T
             for r in (0, n // 2, n - 1):
-                tiles.append(draw_tile(frames[r], r, pos_cam if pos_cam is not None else np.zeros((0, 3)),
-                                       path if path is not None else np.zeros((0, 3)), K, Tp, axes_cam,
-                                       f"{v}  t={int(tick[r])}  #{ei}", tile))
+                tiles.append(
+                    draw_tile(
+                        frames[r],
+                        r,
+                        pos_cam if pos_cam is not None else np.zeros((0, 3)),
+                        path if path is not None else np.zeros((0, 3)),
+                        K,
+                        Tp,
+                        axes_cam,
+                        f"{v}  t={int(tick[r])}  #{ei}",
+                        tile,
+                    )
+                )
         rows.append(np.hstack(tiles))
     sheet = np.vstack(rows)
-    lines = [f"space={space} state={state_frame}  white: state path  cyan: action path  magenta: next Tp  "
-             f"axes: base x/y/z (10 cm)"]
+    lines = [
+        f"space={space} state={state_frame}  white: state path  cyan: action path  magenta: next Tp  "
+        f"axes: base x/y/z (10 cm)"
+    ]
     lines += [f"#{ei} {e['id']}" for ei, e in enumerate(meta["episodes"][:max_episodes])]
     legend = np.zeros((LABEL_H * len(lines) + 4, sheet.shape[1], 3), np.uint8)
     for li, text in enumerate(lines):

@@ -71,7 +71,7 @@ class CameraCalib:
         }
 
     @classmethod
-    def from_json(cls, name: str, d: dict[str, Any]) -> "CameraCalib":
+    def from_json(cls, name: str, d: dict[str, Any]) -> CameraCalib:
         K = np.asarray(d["source_K"], dtype=np.float64)
         fovy = float(np.degrees(2.0 * np.arctan((d["source_height"] / 2.0) / K[1, 1])))
         cam = Camera(name, np.asarray(d["position"]), np.asarray(d["R_ext"]).T, fovy)
@@ -184,8 +184,9 @@ def align(
         i = np.searchsorted(f_ns, stamp, side="right") - 1  # newest frame at or before the tick
         missing = i < 0
         age = stamp - f_ns[np.maximum(i, 0)] if len(f_ns) else np.zeros_like(stamp)
-        tol = max_frame_age_ns if max_frame_age_ns is not None else frame_tolerance_ns(f_ns, age[~missing],
-                                                                                      ep.control_hz)
+        tol = (
+            max_frame_age_ns if max_frame_age_ns is not None else frame_tolerance_ns(f_ns, age[~missing], ep.control_hz)
+        )
         tolerance[v] = int(tol)
         too_old = ~missing & (age > tol)
         i = np.where(missing | too_old, -1, i)
@@ -229,8 +230,11 @@ def load_raw_episode(path: str | Path, views: list[str]) -> RawEpisode:
     path = Path(path)
     wanted = [topics.ROBOT_STATE.mcap_topic, topics.APPLIED_ACTION.mcap_topic]
     for v in views:
-        wanted += [topics.camera_image(v).mcap_topic, topics.camera_calibration(v).mcap_topic,
-                   topics.camera_pose(v).mcap_topic]
+        wanted += [
+            topics.camera_image(v).mcap_topic,
+            topics.camera_calibration(v).mcap_topic,
+            topics.camera_pose(v).mcap_topic,
+        ]
     try:
         ep = read_episode(path, topics=wanted)
     except EpisodeReadError as exc:
@@ -240,8 +244,10 @@ def load_raw_episode(path: str | Path, views: list[str]) -> RawEpisode:
     missing = [v for v in views if v not in ep.cameras]
     if missing:
         have = sorted(md.get("frames", {})) or "unknown"
-        raise EpisodeError(f"{name}: no frames of camera {', '.join(repr(m) for m in missing)} "
-                           f"(this episode's cameras: {', '.join(have) if isinstance(have, list) else have})")
+        raise EpisodeError(
+            f"{name}: no frames of camera {', '.join(repr(m) for m in missing)} "
+            f"(this episode's cameras: {', '.join(have) if isinstance(have, list) else have})"
+        )
 
     states = ep.messages(topics.ROBOT_STATE.mcap_topic)
     applied = ep.messages(topics.APPLIED_ACTION.mcap_topic)
@@ -250,8 +256,9 @@ def load_raw_episode(path: str | Path, views: list[str]) -> RawEpisode:
     try:
         eef_pos = np.array([list(r.msg.eef_pos) for r in states], dtype=np.float64).reshape(len(states), 3)
         eef_quat = np.array([list(r.msg.eef_quat_wxyz) for r in states], dtype=np.float64).reshape(len(states), 4)
-        act = np.array([[*r.msg.action.dp, *r.msg.action.drot, r.msg.action.gripper] for r in applied],
-                       dtype=np.float64).reshape(len(applied), 7)
+        act = np.array(
+            [[*r.msg.action.dp, *r.msg.action.drot, r.msg.action.gripper] for r in applied], dtype=np.float64
+        ).reshape(len(applied), 7)
     except ValueError as exc:
         raise EpisodeError(f"{name}: malformed robot state or applied action ({exc})") from exc
 
@@ -270,8 +277,10 @@ def load_raw_episode(path: str | Path, views: list[str]) -> RawEpisode:
                 cam, K = Camera.from_msgs(c.msg, p.msg)
                 found.append(CameraCalib(cam, K, int(c.msg.width), int(c.msg.height)))
             if any(_moved(found[0], f) for f in found[1:]):
-                raise EpisodeError(f"{name}: camera {v!r} calibration or pose changed during the episode; "
-                                   f"a pseudo-demo needs one fixed camera")
+                raise EpisodeError(
+                    f"{name}: camera {v!r} calibration or pose changed during the episode; "
+                    f"a pseudo-demo needs one fixed camera"
+                )
             calib[v] = found[0]
 
     hz = md.get("control_hz")

@@ -40,14 +40,16 @@ def make_pseudo_demo(
     needs_calib = space == "camera" or state_frame == "camera"
     if needs_calib and calib is None:
         what = "the camera action space" if space == "camera" else "a camera-frame state"
-        raise EpisodeError(f"{source or al.episode_id}: camera {view!r} has no calibration/pose recorded; "
-                           f"{what} needs it")
+        raise EpisodeError(
+            f"{source or al.episode_id}: camera {view!r} has no calibration/pose recorded; {what} needs it"
+        )
     keep = al.valid(view)
     R_ext = calib.camera.R_ext if calib is not None else None
     position = calib.camera.position if calib is not None else None
     action = to_space(al.action[keep], space, eef_rot=al.eef_rot[keep], R_ext=R_ext)
-    state = state_vector(al.eef_pos[keep], al.eef_rot[keep], al.gripper[keep], state_frame,
-                         R_ext=R_ext, cam_position=position)
+    state = state_vector(
+        al.eef_pos[keep], al.eef_rot[keep], al.gripper[keep], state_frame, R_ext=R_ext, cam_position=position
+    )
     tick = al.tick[keep]
     return PseudoDemo(
         episode_id=al.episode_id,

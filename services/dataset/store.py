@@ -69,8 +69,11 @@ class DatasetStore:
             raise DatasetError(f"dataset {self.path} does not exist")
         manifest = self.path / MANIFEST
         if not manifest.is_file():
-            hint = " (a build did not finish: run `viewscale dataset build` again)" if (
-                self.path / EPISODES).is_dir() else ""
+            hint = (
+                " (a build did not finish: run `viewscale dataset build` again)"
+                if (self.path / EPISODES).is_dir()
+                else ""
+            )
             raise DatasetError(f"{self.path} is not a complete dataset: no {MANIFEST}{hint}")
         try:
             self.manifest = json.loads(manifest.read_text())
@@ -100,5 +103,7 @@ class DatasetStore:
             raise DatasetError(f"unknown split {name!r}; choose train or val")
         split = self.meta.get("split")
         if not isinstance(split, dict) or name not in split:
-            raise DatasetError(f"{self.path} has no train/val split recorded: rebuild it with `viewscale dataset build`")
+            raise DatasetError(
+                f"{self.path} has no train/val split recorded: rebuild it with `viewscale dataset build`"
+            )
         return list(split[name])

@@ -18,8 +18,14 @@ EPISODE_DROPS = ("duplicate_state", "no_action", "stale_action", "action_without
 VIEW_DROPS = ("missing_frame", "stale_frame", "bad_frame")
 
 
-def summarise(store_dir: Path, params, episodes: list[dict[str, Any]], norm: Normalizer,
-              skipped: list[dict[str, str]], split: tuple[list[str], list[str]]) -> dict[str, Any]:
+def summarise(
+    store_dir: Path,
+    params,
+    episodes: list[dict[str, Any]],
+    norm: Normalizer,
+    skipped: list[dict[str, str]],
+    split: tuple[list[str], list[str]],
+) -> dict[str, Any]:
     """The summary of a build: ``episodes`` as the build lists them (id, dir, info); ``split``
     the (train, val) episode ids."""
     acts, samples_per_view, rows_per_view = [], {v: 0 for v in params.views}, {v: 0 for v in params.views}
@@ -50,7 +56,9 @@ def summarise(store_dir: Path, params, episodes: list[dict[str, Any]], norm: Nor
         "action_space": params.space,
         "state_frame": params.state_frame,
         "image_size": list(params.image_size),
-        "To": params.To, "Tp": params.Tp, "Ta": params.Ta,
+        "To": params.To,
+        "Tp": params.Tp,
+        "Ta": params.Ta,
         "ticks": sum(int(e["info"]["ticks"]) for e in episodes),
         "rows": sum(rows_per_view.values()),
         "rows_per_view": rows_per_view,
@@ -62,7 +70,10 @@ def summarise(store_dir: Path, params, episodes: list[dict[str, Any]], norm: Nor
         "skipped_episodes": skipped,
         "action_stats": {
             "layout": ACTION_LAYOUT,
-            "mean": stat(np.mean), "std": stat(np.std), "min": stat(np.min), "max": stat(np.max),
+            "mean": stat(np.mean),
+            "std": stat(np.std),
+            "min": stat(np.min),
+            "max": stat(np.max),
             "pos_norm_max": float(np.linalg.norm(a[:, 0:3], axis=1).max()) if len(a) else 0.0,
             "rot_norm_max": float(np.linalg.norm(a[:, 3:6], axis=1).max()) if len(a) else 0.0,
             "normalised_abs_max": [round(float(x), 6) for x in np.abs(a_n).max(axis=0)] if len(a) else None,
@@ -90,11 +101,13 @@ def format_summary(s: dict[str, Any], path: Path | None = None) -> str:
     ]
     d = s["drops"]
     view_drops = ", ".join(
-        f"{v}: " + " ".join(f"{k}={n}" for k, n in c.items() if n) for v, c in d["views"].items()
-        if any(c.values()))
-    lines.append(f"  dropped       no_action={d['no_action']} duplicate_state={d['duplicate_state']} "
-                 f"stale_action={d['stale_action']}{' (kept)' if d['stale_action'] else ''}"
-                 + (f"; frames {view_drops}" if view_drops else "; no frames dropped"))
+        f"{v}: " + " ".join(f"{k}={n}" for k, n in c.items() if n) for v, c in d["views"].items() if any(c.values())
+    )
+    lines.append(
+        f"  dropped       no_action={d['no_action']} duplicate_state={d['duplicate_state']} "
+        f"stale_action={d['stale_action']}{' (kept)' if d['stale_action'] else ''}"
+        + (f"; frames {view_drops}" if view_drops else "; no frames dropped")
+    )
     a = s["action_stats"]
     lines += [
         "  actions       (dp_x dp_y dp_z drot_x drot_y drot_z gripper)",
@@ -108,12 +121,18 @@ def format_summary(s: dict[str, Any], path: Path | None = None) -> str:
     ]
     if "split" in s:
         sp = s["split"]
-        lines.append(f"  split         {sp['train']} training, {sp['val']} held-out episodes"
-                     + (f" ({', '.join(sp['val_episodes'][:5])}{', ...' if sp['val'] > 5 else ''})" if sp["val"] else ""))
+        lines.append(
+            f"  split         {sp['train']} training, {sp['val']} held-out episodes"
+            + (f" ({', '.join(sp['val_episodes'][:5])}{', ...' if sp['val'] > 5 else ''})" if sp["val"] else "")
+        )
     if s.get("flagged_episodes"):
-        lines.append(f"  flagged       {len(s['flagged_episodes'])} episodes: " + "; ".join(
-            f"{k}: {', '.join(v)}" for k, v in list(s["flagged_episodes"].items())[:5]))
+        lines.append(
+            f"  flagged       {len(s['flagged_episodes'])} episodes: "
+            + "; ".join(f"{k}: {', '.join(v)}" for k, v in list(s["flagged_episodes"].items())[:5])
+        )
     if s.get("skipped_episodes"):
-        lines.append(f"  skipped       {len(s['skipped_episodes'])} episodes: " + "; ".join(
-            x["error"] for x in s["skipped_episodes"][:5]))
+        lines.append(
+            f"  skipped       {len(s['skipped_episodes'])} episodes: "
+            + "; ".join(x["error"] for x in s["skipped_episodes"][:5])
+        )
     return "\n".join(lines)

@@ -57,9 +57,19 @@ class EpisodeCounts:
     left: set[str] = field(default_factory=set)  # services that lost liveliness during the episode
 
     @classmethod
-    def start(cls, req: EpisodeRequest, path: str, start_ns: int) -> "EpisodeCounts":
-        return cls(EpisodeMeta(episode_id=req.episode_id, task=req.task, seed=req.seed, rig=req.rig,
-                               control_hz=req.control_hz, lockstep=req.lockstep, start_ns=start_ns, path=path))
+    def start(cls, req: EpisodeRequest, path: str, start_ns: int) -> EpisodeCounts:
+        return cls(
+            EpisodeMeta(
+                episode_id=req.episode_id,
+                task=req.task,
+                seed=req.seed,
+                rig=req.rig,
+                control_hz=req.control_hz,
+                lockstep=req.lockstep,
+                start_ns=start_ns,
+                path=path,
+            )
+        )
 
     @property
     def start_ns(self) -> int:
@@ -117,8 +127,9 @@ class EpisodeCounts:
         return self.written[f"camera/{camera}/image"]
 
 
-def episode_meta(ep: EpisodeCounts, *, drops: dict[str, int], ticks: int, success: bool, end_ns: int,
-                 min_rate_fraction: float) -> EpisodeMeta:
+def episode_meta(
+    ep: EpisodeCounts, *, drops: dict[str, int], ticks: int, success: bool, end_ns: int, min_rate_fraction: float
+) -> EpisodeMeta:
     """The episode's facts so far, with every reason it is suspect in ``flags``.
 
     ``ticks``: the ticks the source says it published (0 while the episode is open);

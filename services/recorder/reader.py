@@ -15,9 +15,9 @@ without an ``episode`` record raises ``EpisodeReadError`` naming the file.
 from __future__ import annotations
 
 import struct
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterable
 
 from google.protobuf.message import DecodeError, Message
 from mcap.exceptions import McapError
@@ -72,6 +72,7 @@ class Episode:
 def _decoder_for(topic: str, schema, fallback: DecoderFactory):
     ours = EpisodeMeta if topic == EPISODE_CHANNEL else getattr(topic_for_key(topic[1:]), "msg_type", None)
     if ours is not None and schema is not None and schema.name == ours.DESCRIPTOR.full_name:
+
         def decode(data: bytes, _type=ours) -> Message:
             msg = _type()
             msg.ParseFromString(data)
@@ -88,8 +89,11 @@ def read_episode(path: str | Path, topics: Iterable[str] | None = None) -> Episo
     """Read ``path`` (a closed episode); ``topics`` limits which channels are decoded."""
     path = Path(path)
     if not path.is_file():
-        hint = f" (a partial {path.name}{PART_SUFFIX} exists: recover it first)" if path.with_name(
-            path.name + PART_SUFFIX).is_file() else ""
+        hint = (
+            f" (a partial {path.name}{PART_SUFFIX} exists: recover it first)"
+            if path.with_name(path.name + PART_SUFFIX).is_file()
+            else ""
+        )
         raise EpisodeReadError(f"episode file {path} does not exist{hint}")
     wanted = None if topics is None else {t if t.startswith("/") else "/" + t for t in topics}
     fallback = DecoderFactory()
@@ -101,8 +105,10 @@ def read_episode(path: str | Path, topics: Iterable[str] | None = None) -> Episo
             if head != MCAP0_MAGIC:
                 raise EpisodeReadError(f"{path} is not an MCAP file")
             if tail != MCAP0_MAGIC or path.stat().st_size < 2 * len(MCAP0_MAGIC):
-                raise EpisodeReadError(f"{path} was not closed (no footer: the recorder stopped while writing "
-                                       f"it); recover it with `python -m services.recorder.recover {path}`")
+                raise EpisodeReadError(
+                    f"{path} was not closed (no footer: the recorder stopped while writing "
+                    f"it); recover it with `python -m services.recorder.recover {path}`"
+                )
             f.seek(0)
             reader = make_reader(f)
             raw = {m.name: dict(m.metadata) for m in reader.iter_metadata()}
@@ -118,7 +124,8 @@ def read_episode(path: str | Path, topics: Iterable[str] | None = None) -> Episo
                     decode = decoders[channel.id] = _decoder_for(channel.topic, schema, fallback)
                     episode.schemas[channel.topic] = schema.name if schema is not None else ""
                 episode.topics.setdefault(channel.topic, []).append(
-                    Record(message.log_time, message.publish_time, message.sequence, decode(message.data)))
+                    Record(message.log_time, message.publish_time, message.sequence, decode(message.data))
+                )
     except EpisodeReadError:
         raise
     except (McapError, DecodeError, EOFError, struct.error, ValueError, OSError) as exc:

@@ -64,11 +64,19 @@ class Recovered:
     stop_reason: str = ""  # why reading stopped before the end, if it did
 
     def summary(self) -> str:
-        tail = "file was complete" if self.complete else (
-            f"{self.lost_bytes} trailing bytes unreadable ({self.stop_reason})" if self.lost_bytes
-            else "no data lost past the last complete record")
-        return (f"recovered {self.source} -> {self.path}: {self.messages} messages on {len(self.per_topic)} "
-                f"channels from {self.chunks} chunks; {tail}")
+        tail = (
+            "file was complete"
+            if self.complete
+            else (
+                f"{self.lost_bytes} trailing bytes unreadable ({self.stop_reason})"
+                if self.lost_bytes
+                else "no data lost past the last complete record"
+            )
+        )
+        return (
+            f"recovered {self.source} -> {self.path}: {self.messages} messages on {len(self.per_topic)} "
+            f"channels from {self.chunks} chunks; {tail}"
+        )
 
 
 def default_output(src: Path) -> Path:
@@ -128,15 +136,15 @@ def salvage(src: str | Path, out: str | Path | None = None, overwrite: bool = Fa
                     pending.append(rec)
                     return
                 channel_ids[rec.id] = writer.register_channel(
-                    rec.topic, rec.message_encoding, schema_ids.get(rec.schema_id, 0), dict(rec.metadata))
+                    rec.topic, rec.message_encoding, schema_ids.get(rec.schema_id, 0), dict(rec.metadata)
+                )
                 topics[rec.id] = rec.topic
 
             def add_message(rec: Message) -> None:
                 nonlocal last_log
                 if rec.channel_id not in channel_ids:
                     return
-                writer.add_message(channel_ids[rec.channel_id], rec.log_time, rec.data, rec.publish_time,
-                                   rec.sequence)
+                writer.add_message(channel_ids[rec.channel_id], rec.log_time, rec.data, rec.publish_time, rec.sequence)
                 topic = topics[rec.channel_id]
                 result.messages += 1
                 result.per_topic[topic] += 1
@@ -202,8 +210,9 @@ def salvage(src: str | Path, out: str | Path | None = None, overwrite: bool = Fa
     return result
 
 
-def _rebuild_meta(src: Path, start: dict[str, str] | None, result: Recovered, robot_stamps: list[int],
-                  last_log: int) -> EpisodeMeta:
+def _rebuild_meta(
+    src: Path, start: dict[str, str] | None, result: Recovered, robot_stamps: list[int], last_log: int
+) -> EpisodeMeta:
     meta = meta_from_start_record(start or {})
     if not meta.episode_id:
         meta.episode_id = default_output(src).stem
@@ -216,9 +225,11 @@ def _rebuild_meta(src: Path, start: dict[str, str] | None, result: Recovered, ro
             meta.frames[parts[2]] = n
     meta.end_ns = last_log
     meta.path = str(result.path)
-    meta.flags.append(f"{RECOVERED_FLAG}: {src.name} was not closed by the recorder (killed?); "
-                      f"{result.messages} messages saved"
-                      + (f", {result.lost_bytes} trailing bytes lost" if result.lost_bytes else ""))
+    meta.flags.append(
+        f"{RECOVERED_FLAG}: {src.name} was not closed by the recorder (killed?); "
+        f"{result.messages} messages saved"
+        + (f", {result.lost_bytes} trailing bytes lost" if result.lost_bytes else "")
+    )
     if start is None:
         meta.flags.append("episode_start record missing: task, seed and rig unknown")
     return meta
@@ -228,8 +239,9 @@ def _write_meta(writer: McapWriter, meta: EpisodeMeta) -> None:
     from mcap.well_known import MessageEncoding
     from mcap_protobuf.schema import build_file_descriptor_set
 
-    schema_id = writer.register_schema(EpisodeMeta.DESCRIPTOR.full_name, "protobuf",
-                                       build_file_descriptor_set(EpisodeMeta).SerializeToString())
+    schema_id = writer.register_schema(
+        EpisodeMeta.DESCRIPTOR.full_name, "protobuf", build_file_descriptor_set(EpisodeMeta).SerializeToString()
+    )
     channel_id = writer.register_channel(EPISODE_CHANNEL, MessageEncoding.Protobuf, schema_id)
     stamp = meta.end_ns or meta.start_ns
     writer.add_message(channel_id, stamp, meta.SerializeToString(), stamp, 0)

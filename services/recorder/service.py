@@ -22,11 +22,11 @@ import queue
 import threading
 import time
 from collections import Counter
-from dataclasses import dataclass
+from collections.abc import Callable
 from concurrent.futures import Future
 from concurrent.futures import TimeoutError as FutureTimeout
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
 from google.protobuf.message import DecodeError, Message
 
@@ -103,11 +103,14 @@ class Recorder:
         self._publisher = None
 
     # -- lifecycle --------------------------------------------------------------------------
-    def __enter__(self) -> "Recorder":
+    def __enter__(self) -> Recorder:
         self.out_dir.mkdir(parents=True, exist_ok=True)
         for part in sorted(self.out_dir.glob("*.mcap" + PART_SUFFIX)):
-            log.warning("partial episode %s from an earlier run; recover it with "
-                        "`python -m services.recorder.recover %s`", part, part)
+            log.warning(
+                "partial episode %s from an earlier run; recover it with `python -m services.recorder.recover %s`",
+                part,
+                part,
+            )
         self._publisher = self.bus.publisher(EPISODE)
         self._thread.start()
         self.bus.subscribe_raw("**", self._on_sample)
@@ -172,8 +175,9 @@ class Recorder:
                 self._drops[key] += 1
                 n = self._drops[key]
             if n == 1 or n % 100 == 0:
-                log.warning("recorder cannot keep up: %d samples dropped on %s (queue of %d full)",
-                            n, key, self.cfg.queue_size)
+                log.warning(
+                    "recorder cannot keep up: %d samples dropped on %s (queue of %d full)", n, key, self.cfg.queue_size
+                )
             return
         self._wake.set()
 
@@ -186,8 +190,9 @@ class Recorder:
         try:
             req = EpisodeRequest.FromString(payload)
         except DecodeError as exc:
-            return EpisodeReply(ok=False, error=f"malformed EpisodeRequest ({len(payload)} bytes): {exc}",
-                                recording=self._recording).SerializeToString()
+            return EpisodeReply(
+                ok=False, error=f"malformed EpisodeRequest ({len(payload)} bytes): {exc}", recording=self._recording
+            ).SerializeToString()
         return self.request(req).SerializeToString()
 
     # -- control ----------------------------------------------------------------------------
@@ -211,8 +216,9 @@ class Recorder:
         try:
             return fut.result(timeout=wait)
         except FutureTimeout:
-            return EpisodeReply(ok=False, error=f"recorder did not answer within {wait:.0f}s",
-                                recording=self._recording)
+            return EpisodeReply(
+                ok=False, error=f"recorder did not answer within {wait:.0f}s", recording=self._recording
+            )
         except Exception as exc:
             log.exception("episode command %s failed", req.command)
             return EpisodeReply(ok=False, error=f"{type(exc).__name__}: {exc}", recording=self._recording)
@@ -257,10 +263,20 @@ class Recorder:
         for key, (rx, msg) in sorted(self._calibration.items()):
             self._write(ep, key, rx, msg)
         # Stale ones are written for completeness, but the camera may be gone: expect no frames from it.
-        ep.cameras = {camera_of(key) for key, (rx, _) in self._calibration.items()
-                      if start_ns - rx.receive_ns <= _FRESH_CALIBRATION_NS}
-        log.info("episode %s started: task %s seed %d rig %s at %.1f Hz -> %s", req.episode_id, req.task, req.seed,
-                 req.rig, req.control_hz, writer.part_path)
+        ep.cameras = {
+            camera_of(key)
+            for key, (rx, _) in self._calibration.items()
+            if start_ns - rx.receive_ns <= _FRESH_CALIBRATION_NS
+        }
+        log.info(
+            "episode %s started: task %s seed %d rig %s at %.1f Hz -> %s",
+            req.episode_id,
+            req.task,
+            req.seed,
+            req.rig,
+            req.control_hz,
+            writer.part_path,
+        )
         return EpisodeReply(ok=True, recording=True, meta=self._meta(ep))
 
     def _stop(self, req: EpisodeRequest, fut: Future) -> EpisodeReply | None:
@@ -439,16 +455,18 @@ class Recorder:
             return
         last = ep.count(key, msg, stamp)
         if last is not None:
-            log.warning("episode %s: sequence on %s went back from %d (publisher restart?)", ep.meta.episode_id,
-                        key, last)
+            log.warning(
+                "episode %s: sequence on %s went back from %d (publisher restart?)", ep.meta.episode_id, key, last
+            )
 
     # -- metadata and closing ---------------------------------------------------------------
     def _meta(self, ep: _Episode, ticks: int = 0, success: bool = False) -> EpisodeMeta:
         """The episode's facts so far, with every reason it is suspect in ``flags``."""
         with self._drop_lock:
             drops = dict(self._drops)
-        return episode_meta(ep, drops=drops, ticks=ticks, success=success, end_ns=now_ns(),
-                            min_rate_fraction=self.cfg.min_rate_fraction)
+        return episode_meta(
+            ep, drops=drops, ticks=ticks, success=success, end_ns=now_ns(), min_rate_fraction=self.cfg.min_rate_fraction
+        )
 
     def _close_episode(self, success: bool, ticks: int) -> EpisodeReply:
         """Write what is queued, the final metadata, and close the file."""
@@ -469,16 +487,28 @@ class Recorder:
             ep.writer.close()
         except (OSError, ValueError) as exc:
             ep.writer.abandon()
-            log.error("episode %s could not be closed: %s; %s is kept for recovery", meta.episode_id, exc,
-                      ep.writer.part_path)
-            return EpisodeReply(ok=False, recording=False, meta=meta,
-                                error=f"could not close {ep.writer.part_path}: {exc}; recover it with "
-                                      f"`python -m services.recorder.recover {ep.writer.part_path}`")
+            log.error(
+                "episode %s could not be closed: %s; %s is kept for recovery", meta.episode_id, exc, ep.writer.part_path
+            )
+            return EpisodeReply(
+                ok=False,
+                recording=False,
+                meta=meta,
+                error=f"could not close {ep.writer.part_path}: {exc}; recover it with "
+                f"`python -m services.recorder.recover {ep.writer.part_path}`",
+            )
         self._last_meta = meta
         level = logging.WARNING if meta.flags else logging.INFO
-        log.log(level, "episode %s closed: %d states, %.2f Hz, frames {%s}%s -> %s", meta.episode_id,
-                ep.written[ROBOT_STATE.key], meta.achieved_hz, fmt_counts(dict(meta.frames)),
-                "".join(f"\n  flag: {f}" for f in meta.flags), ep.writer.path)
+        log.log(
+            level,
+            "episode %s closed: %d states, %.2f Hz, frames {%s}%s -> %s",
+            meta.episode_id,
+            ep.written[ROBOT_STATE.key],
+            meta.achieved_hz,
+            fmt_counts(dict(meta.frames)),
+            "".join(f"\n  flag: {f}" for f in meta.flags),
+            ep.writer.path,
+        )
         try:
             self._publisher.put(meta)
         except Exception:  # the file is closed; a bus problem must not turn this into a failure

@@ -87,6 +87,7 @@ def parse(topic: Topic, payload: bytes, decode_images: bool = True) -> Message:
         check_jpeg(msg.data, decode=decode_images)
     elif isinstance(msg, CameraCalibration):
         if msg.width <= 0 or msg.height <= 0 or len(msg.K) != 9:
-            raise MalformedPayload(f"calibration needs width, height and 9 K values (got {msg.width}x{msg.height}, "
-                                   f"{len(msg.K)} K)")
+            raise MalformedPayload(
+                f"calibration needs width, height and 9 K values (got {msg.width}x{msg.height}, {len(msg.K)} K)"
+            )
     return msg

@@ -22,13 +22,14 @@ import json
 import os
 import re
 import time
+from collections.abc import Mapping
 from pathlib import Path
-from typing import IO, Mapping
+from typing import IO
 
 from google.protobuf.message import Message
 from mcap.well_known import MessageEncoding
-from mcap.writer import CompressionType
 from mcap.writer import LIBRARY_IDENTIFIER as MCAP_LIBRARY
+from mcap.writer import CompressionType
 from mcap.writer import Writer as McapWriter
 from mcap_protobuf.schema import build_file_descriptor_set
 
@@ -159,8 +160,9 @@ class EpisodeWriter:
             fds = build_file_descriptor_set(msg_type)
             schema_id = self._mcap.register_schema(name=name, encoding="protobuf", data=fds.SerializeToString())
             self._schemas[name] = schema_id
-        channel_id = self._mcap.register_channel(topic=topic, message_encoding=MessageEncoding.Protobuf,
-                                                 schema_id=schema_id)
+        channel_id = self._mcap.register_channel(
+            topic=topic, message_encoding=MessageEncoding.Protobuf, schema_id=schema_id
+        )
         self._channels[topic] = channel_id
         self._types[topic] = name
         return channel_id
@@ -170,8 +172,9 @@ class EpisodeWriter:
         channel_id = self._channel(topic, msg_type)
         seq = self._seq.get(topic, 0)
         self._seq[topic] = seq + 1
-        self._mcap.add_message(channel_id=channel_id, log_time=int(log_time), data=data,
-                               publish_time=int(publish_time), sequence=seq)
+        self._mcap.add_message(
+            channel_id=channel_id, log_time=int(log_time), data=data, publish_time=int(publish_time), sequence=seq
+        )
         self.messages += 1
         self._pending += 1
         if self._file.tell() != self._on_disk:  # the mcap writer just cut a chunk: hand it to the OS

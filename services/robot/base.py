@@ -28,7 +28,7 @@ class RobotDriver(ABC):
     """
 
     @classmethod
-    def from_config(cls, cfg: Any, *, control_hz: float) -> "RobotDriver":
+    def from_config(cls, cfg: Any, *, control_hz: float) -> RobotDriver:
         """Build from the driver's typed config (None for a class without a Config)."""
         return cls(cfg, control_hz=control_hz)  # type: ignore[call-arg]
 

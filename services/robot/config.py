@@ -37,6 +37,6 @@ class RobotConfig(Frozen):
     log_level: str = "INFO"  # logging level of the process
 
     @model_validator(mode="after")
-    def _world(self) -> "RobotConfig":
+    def _world(self) -> RobotConfig:
         check_world(self.driver, self.world, "robot")
         return self

@@ -22,7 +22,7 @@ import logging
 import threading
 import time
 from collections import Counter
-from typing import Callable
+from collections.abc import Callable
 
 from services.core import topics
 from services.core.bus import Bus, Received
@@ -128,8 +128,10 @@ class ControlLoop:
         """Wait for the tick's command, execute it (or hold), publish what ran."""
         if self.realtime:
             period = 1.0 / self.control_hz
-            deadline = max(self._tick_start + self.command_wait_fraction * period,
-                           self._published_at + self.min_command_wait * period)
+            deadline = max(
+                self._tick_start + self.command_wait_fraction * period,
+                self._published_at + self.min_command_wait * period,
+            )
         else:
             deadline = self._published_at + self.command_timeout_s
         ran = self.robot.apply(self._wait_command(self.tick, deadline))
@@ -153,5 +155,9 @@ class ControlLoop:
             self.step()
             if self.realtime:
                 rate.sleep()
-        log.info("control loop stopped at tick %d (%d stale ticks, %d clipped)", self.tick, self.stale_ticks,
-                 self.clipped_ticks)
+        log.info(
+            "control loop stopped at tick %d (%d stale ticks, %d clipped)",
+            self.tick,
+            self.stale_ticks,
+            self.clipped_ticks,
+        )

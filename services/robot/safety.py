@@ -45,7 +45,7 @@ class SafetyConfig(Frozen):
     command_timeout_s: float = Field(1.0, gt=0)  # no fresh command for this long: stop the arm (hold before)
 
     @model_validator(mode="after")
-    def _box(self) -> "SafetyConfig":
+    def _box(self) -> SafetyConfig:
         if any(lo >= hi for lo, hi in zip(self.workspace_lo, self.workspace_hi)):
             raise ValueError(f"workspace_lo {self.workspace_lo} must be below workspace_hi {self.workspace_hi}")
         return self
@@ -134,7 +134,7 @@ class Safety:
     def close(self) -> None:
         self.driver.close()
 
-    def __enter__(self) -> "Safety":
+    def __enter__(self) -> Safety:
         return self
 
     def __exit__(self, *exc) -> None:

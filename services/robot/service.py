@@ -14,8 +14,8 @@ from services.core.bus import Bus
 from services.core.runtime import serve
 from services.robot.base import RobotDriver
 from services.robot.config import ROBOT_DRIVERS, RobotConfig
-from services.robot.safety import Safety
 from services.robot.loop import ControlLoop
+from services.robot.safety import Safety
 
 log = logging.getLogger(__name__)
 
@@ -33,7 +33,7 @@ class RobotService:
             bus, self.robot, cfg.control_hz, cfg.realtime, cfg.command_timeout_s, cfg.command_wait_fraction
         )
 
-    def __enter__(self) -> "RobotService":
+    def __enter__(self) -> RobotService:
         self.bus.announce("robot")
         return self
 

@@ -1,6 +1,6 @@
 """A Zenoh router: the hub every service of a session connects to.
 
-    python -m services.router --listen tcp/0.0.0.0:7447
+python -m services.router --listen tcp/0.0.0.0:7447
 """
 
 from __future__ import annotations
@@ -15,7 +15,9 @@ from services.core.runtime import announce_ready, configure_logging, stop_on_sig
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m services.router", description=__doc__.splitlines()[0])
-    parser.add_argument("--listen", action="append", default=None, help="endpoint (repeatable), default tcp/0.0.0.0:7447")
+    parser.add_argument(
+        "--listen", action="append", default=None, help="endpoint (repeatable), default tcp/0.0.0.0:7447"
+    )
     parser.add_argument("--log-level", default="INFO")
     args = parser.parse_args(argv)
     configure_logging(args.log_level)

@@ -22,7 +22,6 @@ from services.core.bus import Bus, BusConfig, free_tcp_port, router
 from services.session.config import SessionConfig
 from services.session.session import Session, SessionError, SessionResult, summary
 
-
 MODULES = {"recorder": "services.recorder", "sim": "sim", "teleop": "services.teleop"}  # service -> module
 
 
@@ -61,7 +60,7 @@ class LocalStack:
     def bus_config(self) -> BusConfig:
         return BusConfig(mode="client", connect=[self.endpoint])
 
-    def __enter__(self) -> "LocalStack":
+    def __enter__(self) -> LocalStack:
         self.log_dir.mkdir(parents=True, exist_ok=True)
         self._router = router([self.endpoint])
         try:
@@ -112,8 +111,10 @@ class LocalStack:
                 line = child.proc.stdout.readline()
                 if not line:  # EOF: the process died before it was ready
                     child.proc.wait(timeout=5)
-                    raise CollectError(f"{child.name} exited with code {child.proc.returncode} before it was "
-                                       f"ready; last log lines:\n{child.tail()}")
+                    raise CollectError(
+                        f"{child.name} exited with code {child.proc.returncode} before it was "
+                        f"ready; last log lines:\n{child.tail()}"
+                    )
                 if line.startswith(f"ready {child.name}"):
                     sel.unregister(child.proc.stdout)
                     pending.pop(child.proc.stdout.fileno(), None)
@@ -122,8 +123,9 @@ class LocalStack:
     def check_alive(self) -> None:
         for child in self.children:
             if child.proc.poll() is not None:
-                raise CollectError(f"{child.name} exited with code {child.proc.returncode}; "
-                                   f"last log lines:\n{child.tail()}")
+                raise CollectError(
+                    f"{child.name} exited with code {child.proc.returncode}; last log lines:\n{child.tail()}"
+                )
 
     def __exit__(self, *exc) -> None:
         for child in self.children:
@@ -168,8 +170,15 @@ def collect(
     progress(f"starting sim ({task}, rig {rig}), teleop (scripted) and recorder -> {out}")
     with LocalStack(out, config, overrides) as stack:
         progress(f"services ready on {stack.endpoint}; logs in {stack.log_dir}")
-        cfg = SessionConfig(bus=stack.bus_config(), task=task, rig=rig, episodes=episodes, seed=seed,
-                            control_hz=control_hz, max_ticks=max_ticks)
+        cfg = SessionConfig(
+            bus=stack.bus_config(),
+            task=task,
+            rig=rig,
+            episodes=episodes,
+            seed=seed,
+            control_hz=control_hz,
+            max_ticks=max_ticks,
+        )
         with Bus(cfg.bus) as bus:
             try:
                 result = Session(cfg, bus, progress=progress).run()

@@ -13,14 +13,20 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
-from typing import Callable
 
 from services.core import topics
 from services.core.bus import Bus, Received
 from services.pb.episode_pb2 import (
-    EpisodeCommand, EpisodeMeta, EpisodeReply, EpisodeRequest, SimCommand, SimControlReply, SimControlRequest,
+    EpisodeCommand,
+    EpisodeMeta,
+    EpisodeReply,
+    EpisodeRequest,
+    SimCommand,
+    SimControlReply,
+    SimControlRequest,
 )
 from services.pb.sensors_pb2 import TaskState
 from services.session.config import SessionConfig
@@ -61,8 +67,10 @@ def describe(attempt: Attempt) -> str:
     m = attempt.meta
     drops = sum(m.drops.values())
     flags = f" FLAGGED: {'; '.join(m.flags)}" if m.flags else ""
-    return (f"seed {attempt.seed}: success in {attempt.ticks} ticks ({attempt.seconds:.1f} s, "
-            f"{m.achieved_hz:.1f} Hz, {drops} drops) -> {m.path}{flags}")
+    return (
+        f"seed {attempt.seed}: success in {attempt.ticks} ticks ({attempt.seconds:.1f} s, "
+        f"{m.achieved_hz:.1f} Hz, {drops} drops) -> {m.path}{flags}"
+    )
 
 
 class Session:
@@ -142,8 +150,15 @@ class Session:
         self._watch(episode_id)
         t0 = time.monotonic()
         reset = self._sim(SimCommand.SIM_COMMAND_RESET, task=self.cfg.task, seed=seed, episode_id=episode_id)
-        self._recorder(EpisodeCommand.EPISODE_COMMAND_START, episode_id=episode_id, task=self.cfg.task,
-                       seed=seed, rig=self.cfg.rig, control_hz=self.cfg.control_hz, lockstep=reset.lockstep)
+        self._recorder(
+            EpisodeCommand.EPISODE_COMMAND_START,
+            episode_id=episode_id,
+            task=self.cfg.task,
+            seed=seed,
+            rig=self.cfg.rig,
+            control_hz=self.cfg.control_hz,
+            lockstep=reset.lockstep,
+        )
         try:
             self._sim(SimCommand.SIM_COMMAND_RUN)
             self._wait_done(self.cfg.tick_limit())
@@ -152,8 +167,12 @@ class Session:
             # Close what was recorded as a failed episode (the recorder flags it) rather than
             # deleting it: an infrastructure fault must not silently lose data.
             try:
-                reply = self._recorder(EpisodeCommand.EPISODE_COMMAND_STOP, episode_id=episode_id, success=False,
-                                       interrupted=str(exc) or type(exc).__name__)
+                reply = self._recorder(
+                    EpisodeCommand.EPISODE_COMMAND_STOP,
+                    episode_id=episode_id,
+                    success=False,
+                    interrupted=str(exc) or type(exc).__name__,
+                )
                 self.progress(f"episode {episode_id} interrupted ({exc}); kept as failed: {reply.meta.path}")
             except Exception as stop_exc:
                 log.warning("could not close interrupted episode %s: %s", episode_id, stop_exc)
@@ -161,8 +180,9 @@ class Session:
         seconds = time.monotonic() - t0
         attempt = Attempt(seed, episode_id, paused.success, int(paused.ticks), seconds)
         if paused.success:
-            reply = self._recorder(EpisodeCommand.EPISODE_COMMAND_STOP, episode_id=episode_id,
-                                   success=True, ticks=paused.ticks)
+            reply = self._recorder(
+                EpisodeCommand.EPISODE_COMMAND_STOP, episode_id=episode_id, success=True, ticks=paused.ticks
+            )
             attempt.meta = reply.meta
         else:
             self._recorder(EpisodeCommand.EPISODE_COMMAND_DISCARD, episode_id=episode_id)
@@ -209,9 +229,13 @@ def summary(result: SessionResult) -> str:
         lines.append(f"expert failures (discarded): seeds {', '.join(str(a.seed) for a in result.failed)}")
     if rec:
         hz = sum(a.meta.achieved_hz for a in rec) / len(rec)
-        lines.append(f"ticks per episode: {min(a.ticks for a in rec)}..{max(a.ticks for a in rec)}, "
-                     f"mean achieved rate {hz:.1f} Hz, drops {sum(sum(a.meta.drops.values()) for a in rec)}")
-    lines.append(f"flagged episodes: {len(flagged)}" + "".join(f"\n  {a.meta.path}: {'; '.join(a.meta.flags)}" for a in flagged))
+        lines.append(
+            f"ticks per episode: {min(a.ticks for a in rec)}..{max(a.ticks for a in rec)}, "
+            f"mean achieved rate {hz:.1f} Hz, drops {sum(sum(a.meta.drops.values()) for a in rec)}"
+        )
+    lines.append(
+        f"flagged episodes: {len(flagged)}" + "".join(f"\n  {a.meta.path}: {'; '.join(a.meta.flags)}" for a in flagged)
+    )
     return "\n".join(lines)
 
 

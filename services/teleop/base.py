@@ -19,7 +19,7 @@ class TeleopDriver(ABC):
     needs_task_state: bool = False
 
     @classmethod
-    def from_config(cls, cfg: Any) -> "TeleopDriver":
+    def from_config(cls, cfg: Any) -> TeleopDriver:
         """Build from the driver's typed config (None for a class without a Config)."""
         return cls(cfg)  # type: ignore[call-arg]
 

@@ -30,6 +30,6 @@ class TeleopConfig(Frozen):
     log_level: str = "INFO"  # logging level of the process
 
     @model_validator(mode="after")
-    def _world(self) -> "TeleopConfig":
+    def _world(self) -> TeleopConfig:
         check_world(self.driver, self.world, "teleop")
         return self

@@ -48,7 +48,7 @@ class TeleopService:
         if driver.needs_task_state:
             bus.subscribe(topics.TASK_STATE, self._on_task, on_error=self._on_malformed)
 
-    def __enter__(self) -> "TeleopService":
+    def __enter__(self) -> TeleopService:
         self.bus.announce("teleop")
         return self
 
@@ -62,8 +62,12 @@ class TeleopService:
     def _on_state(self, msg: RobotState, rx: Received) -> None:
         if len(msg.eef_pos) != 3 or len(msg.eef_quat_wxyz) != 4:
             # Another schema's payload can parse as a RobotState; it must not drive the arm.
-            self._on_malformed(rx, ValueError(f"robot state with {len(msg.eef_pos)} position and "
-                                              f"{len(msg.eef_quat_wxyz)} quaternion values"))
+            self._on_malformed(
+                rx,
+                ValueError(
+                    f"robot state with {len(msg.eef_pos)} position and {len(msg.eef_quat_wxyz)} quaternion values"
+                ),
+            )
             return
         with self._cv:
             self._state = msg
@@ -110,13 +114,21 @@ class TeleopService:
                 log.warning("teleop source failed at tick %d: %s", state.tick, exc)
                 continue
             self._seq += 1
-            self._pub.put(EefCommand(
-                header=Header(stamp_ns=now_ns(), seq=self._seq, frame_id=topics.WORLD_FRAME),
-                tick=state.tick, action=action_msg(delta), source=self.cfg.driver.type,
-            ))
+            self._pub.put(
+                EefCommand(
+                    header=Header(stamp_ns=now_ns(), seq=self._seq, frame_id=topics.WORLD_FRAME),
+                    tick=state.tick,
+                    action=action_msg(delta),
+                    source=self.cfg.driver.type,
+                )
+            )
             self.commands += 1
-        log.info("teleop stopped after %d commands (%d errors, %d malformed)",
-                 self.commands, self.errors, sum(self.malformed.values()))
+        log.info(
+            "teleop stopped after %d commands (%d errors, %d malformed)",
+            self.commands,
+            self.errors,
+            sum(self.malformed.values()),
+        )
 
 
 def main(cfg: TeleopConfig) -> int:

@@ -85,8 +85,13 @@ def add_train_command(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--workers", type=int, help="data loader worker processes (default 2)")
     p.add_argument("--views", help="train on these views only, e.g. F,FL,FR (default all of the dataset's)")
     p.add_argument("--config", help="YAML file with training settings (any TrainConfig field)")
-    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                   help="override any setting, dotted for nested ones: model.down_dims=[64,128] (repeatable)")
+    p.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override any setting, dotted for nested ones: model.down_dims=[64,128] (repeatable)",
+    )
     p.add_argument("--no-resume", action="store_true", help="refuse to continue an existing run in --out")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--json", action="store_true", help="print the result as one JSON line")

@@ -8,8 +8,9 @@ disagrees with the dataset is an error rather than a silent change.
 
 from __future__ import annotations
 
+from collections.abc import Iterable, Mapping
 from pathlib import Path
-from typing import Any, Iterable, Literal, Mapping
+from typing import Any, Literal
 
 from pydantic import Field, model_validator
 
@@ -63,7 +64,7 @@ class TrainConfig(Frozen):
     ema: EmaConfig = Field(default_factory=EmaConfig)  # weight averaging
 
     @model_validator(mode="after")
-    def _check(self) -> "TrainConfig":
+    def _check(self) -> TrainConfig:
         if self.preset not in PRESETS:
             raise ValueError(f"unknown preset {self.preset!r}; choose one of {', '.join(PRESETS)}")
         return self

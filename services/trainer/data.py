@@ -23,8 +23,8 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from services.dataset.store import DatasetError, DatasetStore
 from services.dataset.pseudo_demos import chunk_rows, chunk_starts, pad_hold
+from services.dataset.store import DatasetError, DatasetStore
 
 SPLITS = ("train", "val", "all")
 
@@ -58,8 +58,9 @@ class PseudoDemoDataset(Dataset):
         chosen_views = list(views) if views is not None else list(self.views)
         unknown = [v for v in chosen_views if v not in self.views]
         if unknown or not chosen_views:
-            raise DatasetError(f"view {', '.join(unknown) or '(none)'} is not in {self.path} "
-                               f"(views: {', '.join(self.views)})")
+            raise DatasetError(
+                f"view {', '.join(unknown) or '(none)'} is not in {self.path} (views: {', '.join(self.views)})"
+            )
         self.episode_ids = store.episode_ids if split == "all" else store.split(split)
         keep_eps = set(self.episode_ids)
         self.demos = [d for d in store.demos if d.episode_id in keep_eps and d.view in chosen_views]

@@ -66,7 +66,7 @@ class TrainerService:
         self._threads: list[threading.Thread] = []
 
     # -- lifecycle ------------------------------------------------------------------------------
-    def __enter__(self) -> "TrainerService":
+    def __enter__(self) -> TrainerService:
         self.bus.queryable(TRAIN_REQUEST, self._on_request)
         self._threads.append(threading.Thread(target=self._work, name="trainer-jobs", daemon=True))
         if self.cfg.jobs_dir:
@@ -193,11 +193,21 @@ class TrainerService:
                 try:
                     res = train(job.cfg, on_progress=lambda ev, j=job: self._on_progress(j, ev), stop=job.stop)
                     outcome = "stopped" if res.stopped else "done"
-                    result = {"step": res.step, "loss": res.loss, "val_loss": res.val_loss,
-                              "checkpoint": str(res.checkpoint) if res.checkpoint else None}
+                    result = {
+                        "step": res.step,
+                        "loss": res.loss,
+                        "val_loss": res.val_loss,
+                        "checkpoint": str(res.checkpoint) if res.checkpoint else None,
+                    }
                     state = S.TRAIN_STATE_STOPPED if res.stopped else S.TRAIN_STATE_DONE
-                    self._publish(job, state, step=res.step, loss=res.loss, val_loss=res.val_loss,
-                                  checkpoint=str(res.checkpoint or ""))
+                    self._publish(
+                        job,
+                        state,
+                        step=res.step,
+                        loss=res.loss,
+                        val_loss=res.val_loss,
+                        checkpoint=str(res.checkpoint or ""),
+                    )
                     log.info("job %s %s at step %d", job.job_id, outcome, res.step)
                 except (ConfigError, TrainingError, CheckpointError, OSError) as exc:
                     outcome, result = "failed", {"error": str(exc)}
@@ -216,16 +226,29 @@ class TrainerService:
         now = time.monotonic()
         if now - self._last_progress < self.cfg.progress_every_s:
             return
-        self._publish(job, S.TRAIN_STATE_RUNNING, step=ev["step"], loss=ev.get("loss"), val_loss=ev.get("val_loss"),
-                      lr=ev.get("lr"), it_s=ev.get("it_s"), samples_s=ev.get("samples_s"), eta_s=ev.get("eta_s"),
-                      data_wait=ev.get("data_wait"))
+        self._publish(
+            job,
+            S.TRAIN_STATE_RUNNING,
+            step=ev["step"],
+            loss=ev.get("loss"),
+            val_loss=ev.get("val_loss"),
+            lr=ev.get("lr"),
+            it_s=ev.get("it_s"),
+            samples_s=ev.get("samples_s"),
+            eta_s=ev.get("eta_s"),
+            data_wait=ev.get("data_wait"),
+        )
 
     def _publish(self, job: Job, state: int, **values: Any) -> None:
         self._last_progress = time.monotonic()
         self._seq += 1
         msg = S.TrainProgress(
             header=Header(stamp_ns=time.time_ns(), seq=self._seq, frame_id=SERVICE_NAME),
-            job_id=job.job_id, state=state, steps=job.cfg.steps, out=job.cfg.out, val_loss=math.nan,
+            job_id=job.job_id,
+            state=state,
+            steps=job.cfg.steps,
+            out=job.cfg.out,
+            val_loss=math.nan,
         )
         for name, value in values.items():
             if value is not None:

@@ -19,9 +19,10 @@ import math
 import os
 import threading
 import time
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Any
 
 import torch
 import torch.distributed as dist
@@ -29,9 +30,9 @@ from torch.utils.data import DataLoader, Dataset, Sampler
 
 from services.core.config import ConfigError
 from services.dataset.store import DatasetError
+from services.policy import checkpoint as ckpt
 from services.policy.model.diffusion import compute_loss, make_train_scheduler
 from services.policy.model.policy import DiffusionPolicy, ModelConfig
-from services.policy import checkpoint as ckpt
 from services.trainer.config import TrainConfig, explicitly_set
 from services.trainer.data import PseudoDemoDataset
 
@@ -387,7 +388,7 @@ def train(
     history: list[dict[str, Any]] = []
     if latest is not None:
         tensors, state = ckpt.read_train_state(latest)
-        raw = {k[len("model."):]: v for k, v in tensors.items() if k.startswith("model.")}
+        raw = {k[len("model.") :]: v for k, v in tensors.items() if k.startswith("model.")}
         ckpt.load_state_checked(policy, raw, f"{latest} (training weights)")
         if ema is not None:
             from safetensors.torch import load_file
@@ -406,7 +407,9 @@ def train(
     sched = make_train_scheduler(model_cfg.noise)
     net: torch.nn.Module = LossModule(policy, sched)
     if distributed:
-        net = torch.nn.parallel.DistributedDataParallel(net, device_ids=[device.index] if device.type == "cuda" else None)
+        net = torch.nn.parallel.DistributedDataParallel(
+            net, device_ids=[device.index] if device.type == "cuda" else None
+        )
 
     if main:
         out.mkdir(parents=True, exist_ok=True)
@@ -454,8 +457,13 @@ def train(
         if device.type == "cuda":
             train_t[f"rng.cuda.{rank}"] = torch.cuda.get_rng_state(device)
         return ckpt.save_checkpoint(
-            out, step, serve, {**info_base, "loss": loss, "val_loss": val},
-            train_t, {"optim_groups": groups, "world": world}, keep=cfg.keep_checkpoints,
+            out,
+            step,
+            serve,
+            {**info_base, "loss": loss, "val_loss": val},
+            train_t,
+            {"optim_groups": groups, "world": world},
+            keep=cfg.keep_checkpoints,
         )
 
     bar = None
@@ -477,9 +485,11 @@ def train(
     policy.train()
     # What the first step really computed in: the U-Net output under autocast, the conv layout.
     watch = policy.noise_model.final_conv.register_forward_hook(
-        lambda _m, _i, out: result.compute_dtypes.add(str(out.dtype).removeprefix("torch.")))
-    result.channels_last = all(p.is_contiguous(memory_format=torch.channels_last)
-                               for p in policy.encoder.parameters() if p.dim() == 4)
+        lambda _m, _i, out: result.compute_dtypes.add(str(out.dtype).removeprefix("torch."))
+    )
+    result.channels_last = all(
+        p.is_contiguous(memory_format=torch.channels_last) for p in policy.encoder.parameters() if p.dim() == 4
+    )
     try:
         it = iter(loader)
         while step < cfg.steps:
@@ -536,7 +546,9 @@ def train(
                     "data_wait": round(wait / max(1e-9, now - t_start), 3),
                 }
                 if do_val:
-                    row["val_loss"] = validation_loss(ema.model if ema is not None else policy, data.val, cfg, device, use_amp)
+                    row["val_loss"] = validation_loss(
+                        ema.model if ema is not None else policy, data.val, cfg, device, use_amp
+                    )
                     result.val_loss = row["val_loss"]
                 result.loss = row["loss"]
                 history.append(row)
@@ -549,8 +561,9 @@ def train(
                     bar.set_postfix(post, refresh=False)
                 if on_progress is not None:
                     eta = (cfg.steps - step) / it_s if it_s > 0 else None
-                    on_progress({**row, "steps": cfg.steps, "eta_s": eta, "val_loss": result.val_loss,
-                                 "state": "running"})
+                    on_progress(
+                        {**row, "steps": cfg.steps, "eta_s": eta, "val_loss": result.val_loss, "state": "running"}
+                    )
                 if do_val or last:
                     plot_losses(history, out / "loss.png")
                 interval_losses, t_interval, n_interval = [], now, 0
@@ -578,5 +591,3 @@ def train(
     if distributed:
         dist.barrier()
     return result
-
-

@@ -92,7 +92,7 @@ def test_open_loop_replay_reproduces_the_eef_trajectory(recorded):
     with SimWorld(ep.metadata["task"], load_rig("front")) as world:
         world.reset(int(ep.metadata["seed"]))
         replayed = []
-        for state, action in zip(states, actions):
+        for _state, action in zip(states, actions):
             replayed.append(world.robot().eef_pos.copy())
             world.step(np.array(action.dp), np.array(action.drot), action.gripper)
         assert world.success()
@@ -115,8 +115,21 @@ def test_sigterm_mid_session_keeps_the_partial_episode_and_stops_every_service(t
 
     # Lockstep, so that a loaded machine cannot make the recorded episodes stale: what is under
     # test is the signal, not real-time pacing.
-    cmd = [sys.executable, "-m", "services.cli", "collect", "--task", "can", "--episodes", "20", "--rig", "three15",
-           "--out", str(tmp_path), "--fast"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "services.cli",
+        "collect",
+        "--task",
+        "can",
+        "--episodes",
+        "20",
+        "--rig",
+        "three15",
+        "--out",
+        str(tmp_path),
+        "--fast",
+    ]
     proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     children: list[psutil.Process] = []
     for line in proc.stdout:  # wait until the first episode is recorded: the second is under way

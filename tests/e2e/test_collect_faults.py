@@ -7,14 +7,19 @@ import threading
 import pytest
 from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 
-from services.session.collect import LocalStack
 from services.core import topics
 from services.core.bus import Bus
 from services.pb.episode_pb2 import (
-    EpisodeCommand, EpisodeReply, EpisodeRequest, SimCommand, SimControlReply, SimControlRequest,
+    EpisodeCommand,
+    EpisodeReply,
+    EpisodeRequest,
+    SimCommand,
+    SimControlReply,
+    SimControlRequest,
 )
 from services.pb.sensors_pb2 import RobotState, TaskState
 from services.recorder.reader import read_episode
+from services.session.collect import LocalStack
 
 RIG = ["F", "FL", "FR"]
 
@@ -28,14 +33,16 @@ def stack(tmp_path):
 
 def sim(bus: Bus, command, **kw) -> SimControlReply:
     reply = SimControlReply.FromString(
-        bus.query(topics.SIM_CONTROL, SimControlRequest(command=command, **kw).SerializeToString(), 30))
+        bus.query(topics.SIM_CONTROL, SimControlRequest(command=command, **kw).SerializeToString(), 30)
+    )
     assert reply.ok, reply.error
     return reply
 
 
 def recorder(bus: Bus, command, **kw) -> EpisodeReply:
     reply = EpisodeReply.FromString(
-        bus.query(topics.EPISODE_CONTROL, EpisodeRequest(command=command, **kw).SerializeToString(), 60))
+        bus.query(topics.EPISODE_CONTROL, EpisodeRequest(command=command, **kw).SerializeToString(), 60)
+    )
     assert reply.ok, reply.error
     return reply
 
@@ -43,8 +50,15 @@ def recorder(bus: Bus, command, **kw) -> EpisodeReply:
 def start_episode(bus: Bus, episode_id: str, seed: int) -> None:
     """Reset the sim, open the recording, start ticking: what a session does per episode."""
     sim(bus, SimCommand.SIM_COMMAND_RESET, task="lift", seed=seed, episode_id=episode_id)
-    recorder(bus, EpisodeCommand.EPISODE_COMMAND_START, episode_id=episode_id, task="lift", seed=seed,
-             rig="three15", control_hz=20)
+    recorder(
+        bus,
+        EpisodeCommand.EPISODE_COMMAND_START,
+        episode_id=episode_id,
+        task="lift",
+        seed=seed,
+        rig="three15",
+        control_hz=20,
+    )
     sim(bus, SimCommand.SIM_COMMAND_RUN)
 
 

@@ -101,8 +101,9 @@ def write_episode(
                     continue
                 cam = rg.cameras[c]
                 cw, ch = calib_size or (width, height)
-                w.write_message(topics.camera_calibration(c).mcap_topic, cam.calibration_msg(cw, ch, stamp),
-                                stamp, stamp)
+                w.write_message(
+                    topics.camera_calibration(c).mcap_topic, cam.calibration_msg(cw, ch, stamp), stamp, stamp
+                )
                 w.write_message(topics.camera_pose(c).mcap_topic, cam.pose_msg(stamp), stamp, stamp)
         for c in cams:
             if k in drop_frames.get(c, []):
@@ -114,17 +115,35 @@ def write_episode(
             w.write_message(topics.camera_image(c).mcap_topic, msg, stamp + 2_000_000, f_stamp)
             frames[c] += 1
         q = Rotation.from_matrix(R[k]).as_quat()
-        state = RobotState(header=Header(stamp_ns=stamp, seq=k, frame_id="world"), tick=k,
-                           eef_pos=pos[k].tolist(), eef_quat_wxyz=[q[3], q[0], q[1], q[2]],
-                           joint_pos=[0.0] * 7, joint_vel=[0.0] * 7, gripper=float(grip[k]), episode_id=episode_id)
+        state = RobotState(
+            header=Header(stamp_ns=stamp, seq=k, frame_id="world"),
+            tick=k,
+            eef_pos=pos[k].tolist(),
+            eef_quat_wxyz=[q[3], q[0], q[1], q[2]],
+            joint_pos=[0.0] * 7,
+            joint_vel=[0.0] * 7,
+            gripper=float(grip[k]),
+            episode_id=episode_id,
+        )
         w.write_message(topics.ROBOT_STATE.mcap_topic, state, stamp + 1_000_000, stamp)
         if k not in missing_actions:
             stale = k in stale_actions
             a = EefAction(dp=act[k, 0:3].tolist(), drot=act[k, 3:6].tolist(), gripper=float(act[k, 6]))
             applied = AppliedAction(header=Header(stamp_ns=stamp + period // 2, seq=k), tick=k, action=a, stale=stale)
             w.write_message(topics.APPLIED_ACTION.mcap_topic, applied, stamp + period // 2, stamp + period // 2)
-    meta = EpisodeMeta(episode_id=episode_id, task="lift", seed=seed, rig=rig, success=success, control_hz=control_hz,
-                       achieved_hz=control_hz, ticks=n, frames=frames, start_ns=T0, end_ns=T0 + n * period)
+    meta = EpisodeMeta(
+        episode_id=episode_id,
+        task="lift",
+        seed=seed,
+        rig=rig,
+        success=success,
+        control_hz=control_hz,
+        achieved_hz=control_hz,
+        ticks=n,
+        frames=frames,
+        start_ns=T0,
+        end_ns=T0 + n * period,
+    )
     w.write_message(EPISODE_CHANNEL, meta, T0 + n * period, T0 + n * period)
     w.add_metadata(EPISODE_RECORD, meta_to_record(meta))
     return w.close()

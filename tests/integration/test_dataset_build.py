@@ -14,13 +14,13 @@ from dataset_fixtures import trajectory, write_episode
 from scipy.spatial.transform import Rotation
 
 from services.cli import main as viewscale
-from services.core.rig import load_rig
 from services.core.action_spaces import from_space
 from services.core.geometry import rot6d_to_matrix
+from services.core.rig import load_rig
 from services.dataset.build import BuildParams, build_dataset, split_episodes
+from services.dataset.episodes import CameraCalib, EpisodeError
 from services.dataset.store import DatasetError, DatasetStore
 from services.trainer.data import load_dataset
-from services.dataset.episodes import CameraCalib, EpisodeError
 
 VIEWS = ("F", "FL", "FR")
 N = 40
@@ -177,14 +177,14 @@ def test_eef_space_uses_the_rotation_of_the_actions_own_tick(raw_dir, tmp_path):
             if t + 1 < N:
                 # the step from tick t to t+1, seen from the EEF at tick t
                 np.testing.assert_allclose(a[k, 0:3], R[t].T @ (pos[t + 1] - pos[t]), atol=1e-6)
-                np.testing.assert_allclose(Rotation.from_rotvec(a[k, 3:6]).as_matrix(), R[t].T @ R[t + 1],
-                                           atol=1e-5)
+                np.testing.assert_allclose(Rotation.from_rotvec(a[k, 3:6]).as_matrix(), R[t].T @ R[t + 1], atol=1e-5)
 
 
 def test_held_out_views_are_simply_not_included(raw_dir, tmp_path):
     out = tmp_path / "two"
-    r = build_dataset(raw_dir, out, BuildParams(views=("FU", "F"), space="camera", image_size=(32, 24)),
-                      contact_episodes=0)
+    r = build_dataset(
+        raw_dir, out, BuildParams(views=("FU", "F"), space="camera", image_size=(32, 24)), contact_episodes=0
+    )
     assert r.summary["pseudo_demos"] == 6 and r.summary["views"] == ["FU", "F"]
     ds = load_dataset(out, split="all")
     assert {d.view for d in ds.demos} == {"FU", "F"}
@@ -197,8 +197,17 @@ def test_held_out_views_are_simply_not_included(raw_dir, tmp_path):
 
 def test_drops_are_counted_and_chunks_never_cross_them(tmp_path):
     raw = tmp_path / "raw"
-    write_episode(raw, "gappy", N, cameras=["F", "FL"], drop_frames={"F": [10]}, missing_actions=[25],
-                  frame_delay_ns={"FL": {30: 40_000_000}}, corrupt_frames={"FL": [5]}, stale_actions=[3])
+    write_episode(
+        raw,
+        "gappy",
+        N,
+        cameras=["F", "FL"],
+        drop_frames={"F": [10]},
+        missing_actions=[25],
+        frame_delay_ns={"FL": {30: 40_000_000}},
+        corrupt_frames={"FL": [5]},
+        stale_actions=[3],
+    )
     r = build_dataset(raw, tmp_path / "ds", BuildParams(views=("F", "FL"), image_size=(32, 24)), contact_episodes=0)
     d = r.summary["drops"]
     assert d["no_action"] == 1 and d["stale_action"] == 1
@@ -241,8 +250,7 @@ def test_rebuild_is_skipped_when_nothing_changed_and_incremental_otherwise(tmp_p
     (raw / "ep2.mcap").unlink()
     fifth = build_dataset(raw, out, params, contact_episodes=0)
     assert fifth.summary["episodes"] == 2 and not (out / "episodes" / "ep2").exists()
-    changed = build_dataset(raw, out, BuildParams(views=("F",), space="base", image_size=(32, 24)),
-                            contact_episodes=0)
+    changed = build_dataset(raw, out, BuildParams(views=("F",), space="base", image_size=(32, 24)), contact_episodes=0)
     assert changed.built == 2  # another action space reshapes every episode's arrays
 
 
@@ -254,7 +262,7 @@ def test_a_failed_build_leaves_no_dataset_that_looks_complete(tmp_path):
     assert len(load_dataset(out, split="all")) > 0
     bad = write_episode(raw, "ep1", 24, cameras=["F"])
     data = bad.read_bytes()
-    bad.write_bytes(data[: len(data) // 2] + b"\x00" * 64 + data[len(data) // 2 + 64:])  # damage a chunk
+    bad.write_bytes(data[: len(data) // 2] + b"\x00" * 64 + data[len(data) // 2 + 64 :])  # damage a chunk
     write_episode(raw, "ep2", 24, cameras=["F"], seed=2)
     with pytest.raises(EpisodeError, match="ep1.mcap"):  # raised in a worker thread, reported here
         build_dataset(raw, out, BuildParams(views=("F",), image_size=(32, 24)), contact_episodes=0, jobs=2)
@@ -326,8 +334,26 @@ def test_split_is_by_episode_deterministic_and_disjoint(camera_ds):
 
 def test_cli_build_and_info(raw_dir, tmp_path, capsys):
     out = tmp_path / "cli"
-    rc = viewscale(["dataset", "build", "--raw", str(raw_dir), "--views", "F,FR", "--space", "camera",
-                    "--out", str(out), "--image-size", "32x24", "--contact-episodes", "1", "--jobs", "2"])
+    rc = viewscale(
+        [
+            "dataset",
+            "build",
+            "--raw",
+            str(raw_dir),
+            "--views",
+            "F,FR",
+            "--space",
+            "camera",
+            "--out",
+            str(out),
+            "--image-size",
+            "32x24",
+            "--contact-episodes",
+            "1",
+            "--jobs",
+            "2",
+        ]
+    )
     cap = capsys.readouterr()
     assert rc == 0
     assert "[3/3] ep002.mcap" in cap.err  # per-episode progress
@@ -338,8 +364,9 @@ def test_cli_build_and_info(raw_dir, tmp_path, capsys):
     assert viewscale(["dataset", "info", str(out), "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["samples"] > 0
     for argv, needle in ((["--views", "F,NOPE"], "'NOPE'"), (["--views", ","], "empty view selection")):
-        rc = viewscale(["dataset", "build", "--raw", str(raw_dir), "--out", str(tmp_path / "bad"), "--jobs", "1",
-                        *argv])
+        rc = viewscale(
+            ["dataset", "build", "--raw", str(raw_dir), "--out", str(tmp_path / "bad"), "--jobs", "1", *argv]
+        )
         err = capsys.readouterr().err
         last = err.strip().splitlines()[-1]
         assert rc == 2 and needle in last and last.startswith("error:") and "Traceback" not in err
@@ -347,20 +374,26 @@ def test_cli_build_and_info(raw_dir, tmp_path, capsys):
     assert "not a complete dataset" in capsys.readouterr().err
 
 
-@pytest.mark.parametrize("space,state_frame", [("camera", "auto"), ("base", "auto"), ("eef", "auto"),
-                                               ("camera", "base"), ("eef", "camera")])
+@pytest.mark.parametrize(
+    "space,state_frame", [("camera", "auto"), ("base", "auto"), ("eef", "auto"), ("camera", "base"), ("eef", "camera")]
+)
 def test_contact_sheet_action_path_retraces_the_state_path(raw_dir, tmp_path, space, state_frame):
     """The generated episodes move exactly by their actions, so the path the contact sheet draws from
     a pseudo-demo's actions (in their own frame) must land on the EEF states it draws in white."""
     from services.dataset.contact_sheet import trajectories
 
     out = tmp_path / "ds"
-    build_dataset(raw_dir, out, BuildParams(views=("FL",), space=space, state_frame=state_frame,
-                                            image_size=(32, 24)), contact_episodes=1)
+    build_dataset(
+        raw_dir,
+        out,
+        BuildParams(views=("FL",), space=space, state_frame=state_frame, image_size=(32, 24)),
+        contact_episodes=1,
+    )
     ds = DatasetStore(out)
     d = ds.demos[0]
-    pos_cam, path = trajectories(d.load("state"), d.load("action"), d.load("ends"), space,
-                                 ds.meta["state_frame"], d.calib)
+    pos_cam, path = trajectories(
+        d.load("state"), d.load("action"), d.load("ends"), space, ds.meta["state_frame"], d.calib
+    )
     np.testing.assert_allclose(pos_cam, load_rig("five15").cameras["FL"].to_camera(trajectory(N, 0)[1]), atol=1e-5)
     np.testing.assert_allclose(path, pos_cam, atol=1e-4)
 

@@ -2,15 +2,14 @@
 
 from __future__ import annotations
 
-
 import numpy as np
 import pytest
 import torch
 
 from services.cli import main as viewscale
 from services.core import topics
-from services.recorder.reader import read_episode
 from services.core.action_spaces import from_space, to_space
+from services.recorder.reader import read_episode
 from services.trainer.data import load_dataset
 
 VIEWS = ["F", "FL", "FR", "FU", "FD"]
@@ -19,10 +18,46 @@ VIEWS = ["F", "FL", "FR", "FU", "FD"]
 @pytest.mark.slow
 def test_recorded_sim_episode_to_training_batch(tmp_path, capsys):
     raw, out = tmp_path / "raw", tmp_path / "ds"
-    assert viewscale(["collect", "--task", "lift", "--episodes", "1", "--rig", "five15", "--out", str(raw),
-                      "--size", "64", "--fast"]) == 0
-    assert viewscale(["dataset", "build", "--raw", str(raw), "--views", ",".join(VIEWS), "--space", "camera",
-                      "--out", str(out), "--image-size", "64", "--contact-episodes", "1"]) == 0
+    assert (
+        viewscale(
+            [
+                "collect",
+                "--task",
+                "lift",
+                "--episodes",
+                "1",
+                "--rig",
+                "five15",
+                "--out",
+                str(raw),
+                "--size",
+                "64",
+                "--fast",
+            ]
+        )
+        == 0
+    )
+    assert (
+        viewscale(
+            [
+                "dataset",
+                "build",
+                "--raw",
+                str(raw),
+                "--views",
+                ",".join(VIEWS),
+                "--space",
+                "camera",
+                "--out",
+                str(out),
+                "--image-size",
+                "64",
+                "--contact-episodes",
+                "1",
+            ]
+        )
+        == 0
+    )
     capsys.readouterr()
 
     ds = load_dataset(out, split="all")
@@ -38,15 +73,18 @@ def test_recorded_sim_episode_to_training_batch(tmp_path, capsys):
     # applied actions of the recording, tick for tick; and two views differ by their relative rotation.
     (mcap,) = sorted(raw.glob("*.mcap"))
     ep = read_episode(mcap, topics=[topics.APPLIED_ACTION.mcap_topic])
-    applied = {r.msg.tick: [*r.msg.action.dp, *r.msg.action.drot, r.msg.action.gripper]
-               for r in ep.messages(topics.APPLIED_ACTION.mcap_topic)}
+    applied = {
+        r.msg.tick: [*r.msg.action.dp, *r.msg.action.drot, r.msg.action.gripper]
+        for r in ep.messages(topics.APPLIED_ACTION.mcap_topic)
+    }
     per_view = {}
     for d in ds.demos:
         tick = np.load(d.path("tick"))
         a = np.load(d.path("action")).astype(np.float64)
         R_ext = np.asarray(ds.camera(d.view)["R_ext"])
-        np.testing.assert_allclose(from_space(a, "camera", R_ext=R_ext), np.array([applied[t] for t in tick]),
-                                   atol=1e-6)
+        np.testing.assert_allclose(
+            from_space(a, "camera", R_ext=R_ext), np.array([applied[t] for t in tick]), atol=1e-6
+        )
         per_view[d.view] = (tick, a, R_ext)
     tF, aF, RF = per_view["F"]
     tL, aL, RL = per_view["FL"]

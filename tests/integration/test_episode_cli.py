@@ -10,14 +10,33 @@ ROOT = Path(__file__).resolve().parents[2]
 
 
 def cli(endpoint: str, *args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "services.cli", "episode", *args, "--connect", endpoint],
-                          cwd=ROOT, capture_output=True, text=True, timeout=60)
+    return subprocess.run(
+        [sys.executable, "-m", "services.cli", "episode", *args, "--connect", endpoint],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
 
 
 def test_start_status_stop_and_errors(zenoh_endpoint, tmp_path):
     rec = subprocess.Popen(
-        [sys.executable, "-m", "services.recorder", "--set", "bus.mode=client", "--set", f"bus.connect=[{zenoh_endpoint}]",
-         "--set", f"out_dir={tmp_path}"], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        [
+            sys.executable,
+            "-m",
+            "services.recorder",
+            "--set",
+            "bus.mode=client",
+            "--set",
+            f"bus.connect=[{zenoh_endpoint}]",
+            "--set",
+            f"out_dir={tmp_path}",
+        ],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     try:
         assert rec.stdout.readline().startswith("ready recorder")
         started = cli(zenoh_endpoint, "start", "--id", "by-hand", "--task", "pour", "--rig", "five15")

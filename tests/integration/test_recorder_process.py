@@ -27,8 +27,17 @@ RNG = np.random.default_rng(2)
 
 class RecorderProcess:
     def __init__(self, endpoint: str, out_dir: Path, log: Path, *sets: str):
-        cmd = [sys.executable, "-m", "services.recorder", "--set", "bus.mode=client",
-               "--set", f"bus.connect=[{endpoint}]", "--set", f"out_dir={out_dir}"]
+        cmd = [
+            sys.executable,
+            "-m",
+            "services.recorder",
+            "--set",
+            "bus.mode=client",
+            "--set",
+            f"bus.connect=[{endpoint}]",
+            "--set",
+            f"out_dir={out_dir}",
+        ]
         for item in sets:
             cmd += ["--set", item]
         self.log = log
@@ -64,6 +73,7 @@ def session(tmp_path):
     endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
     procs: list[RecorderProcess] = []
     with router([endpoint]), Bus(BusConfig(mode="client", connect=[endpoint])) as bus:
+
         def start(*sets: str) -> RecorderProcess:
             proc = RecorderProcess(endpoint, tmp_path / "episodes", tmp_path / f"recorder{len(procs)}.log", *sets)
             procs.append(proc)
@@ -115,8 +125,7 @@ def publish(bus: Bus, ticks: int, cameras=("F", "L"), shape=(32, 48)) -> dict[st
 def test_sigterm_closes_the_file_completely(session):
     bus, start = session
     proc = start()
-    assert control(bus, EPISODE_COMMAND_START, episode_id="term", task="lift", seed=1, rig="front",
-                   control_hz=50).ok
+    assert control(bus, EPISODE_COMMAND_START, episode_id="term", task="lift", seed=1, rig="front", control_hz=50).ok
     publish(bus, 10)
     wait_status(bus, 10, {"F": 10, "L": 10})
     proc.proc.send_signal(signal.SIGTERM)
@@ -134,8 +143,7 @@ def test_kill9_loses_at_most_the_open_chunk_and_recovers(session):
     bus, start = session
     chunk = 16384
     proc = start(f"chunk_size={chunk}", "flush_interval_s=600")  # only size cuts chunks here
-    assert control(bus, EPISODE_COMMAND_START, episode_id="killed", task="push", seed=9, rig="five15",
-                   control_hz=50).ok
+    assert control(bus, EPISODE_COMMAND_START, episode_id="killed", task="push", seed=9, rig="five15", control_hz=50).ok
     sent = publish(bus, 80)
     wait_status(bus, 80, {"F": 80, "L": 80})  # everything is in the writer, nothing left in queues
     proc.proc.send_signal(signal.SIGKILL)
@@ -144,8 +152,13 @@ def test_kill9_loses_at_most_the_open_chunk_and_recovers(session):
     part = episodes / "killed.mcap.part"
     assert part.is_file() and not (episodes / "killed.mcap").exists()
 
-    run = subprocess.run([sys.executable, "-m", "services.recorder.recover", str(part)], cwd=REPO,
-                         capture_output=True, text=True, timeout=60)
+    run = subprocess.run(
+        [sys.executable, "-m", "services.recorder.recover", str(part)],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert run.returncode == 0, run.stderr
     assert f"-> {episodes / 'killed.mcap'}" in run.stdout and " messages on " in run.stdout
     ep = read_episode(episodes / "killed.mcap")
@@ -157,7 +170,7 @@ def test_kill9_loses_at_most_the_open_chunk_and_recovers(session):
         recs = ep.messages(topic)
         assert [r.sequence for r in recs] == list(range(len(recs)))  # a prefix of what was written
         recovered += len(recs)
-        lost_bytes += sum(sizes[len(recs):])
+        lost_bytes += sum(sizes[len(recs) :])
     assert recovered > 0 and f"{recovered} messages" in run.stdout
     # The open chunk held less than chunk_size bytes: nothing older than it is missing.
     assert lost_bytes <= chunk, (lost_bytes, recovered)
@@ -165,6 +178,11 @@ def test_kill9_loses_at_most_the_open_chunk_and_recovers(session):
 
 
 def test_bad_settings_exit_with_a_clear_error(tmp_path):
-    run = subprocess.run([sys.executable, "-m", "services.recorder", "--set", "queue_size=0"], cwd=REPO,
-                         capture_output=True, text=True, timeout=60)
+    run = subprocess.run(
+        [sys.executable, "-m", "services.recorder", "--set", "queue_size=0"],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert run.returncode == 2 and "invalid RecorderConfig" in run.stderr and "queue_size" in run.stderr

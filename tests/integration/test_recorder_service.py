@@ -3,8 +3,8 @@
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from contextlib import ExitStack
-from typing import Callable
 
 import numpy as np
 import pytest
@@ -71,6 +71,7 @@ def net():
 @pytest.fixture
 def make_recorder(net, tmp_path):
     with ExitStack() as stack:
+
         def make(**overrides) -> Recorder:
             cfg = RecorderConfig(bus=net.bus_config(), out_dir=tmp_path / "episodes", **overrides)
             bus = stack.enter_context(Bus(cfg.bus))
@@ -138,8 +139,9 @@ class Source:
 
 
 def start(bus: Bus, episode_id: str, control_hz: float = 50.0) -> EpisodeReply:
-    return control(bus, EPISODE_COMMAND_START, episode_id=episode_id, task="lift", seed=3, rig="five15",
-                   control_hz=control_hz)
+    return control(
+        bus, EPISODE_COMMAND_START, episode_id=episode_id, task="lift", seed=3, rig="five15", control_hz=control_hz
+    )
 
 
 def test_records_a_session_into_a_self_contained_mcap(net, make_recorder, tmp_path):
@@ -180,16 +182,27 @@ def test_records_a_session_into_a_self_contained_mcap(net, make_recorder, tmp_pa
             per_channel.setdefault(channel.topic, []).append((message, decoded))
         metadata = {m.name: m.metadata for m in reader.iter_metadata()}
     assert schemas == {
-        "/robot/state": "viewscale.v1.RobotState", "/robot/applied": "viewscale.v1.AppliedAction",
-        "/sim/task": "viewscale.v1.TaskState", "/recorder/episode": "viewscale.v1.EpisodeMeta",
+        "/robot/state": "viewscale.v1.RobotState",
+        "/robot/applied": "viewscale.v1.AppliedAction",
+        "/sim/task": "viewscale.v1.TaskState",
+        "/recorder/episode": "viewscale.v1.EpisodeMeta",
         **{f"/camera/{c}/image": "foxglove.CompressedImage" for c in "FL"},
         **{f"/camera/{c}/calibration": "foxglove.CameraCalibration" for c in "FL"},
         **{f"/camera/{c}/pose": "foxglove.FrameTransform" for c in "FL"},
     }
     counts = {t: len(v) for t, v in per_channel.items()}
-    assert counts == {"/robot/state": 25, "/robot/applied": 25, "/sim/task": 25, "/camera/F/image": 25,
-                      "/camera/L/image": 25, "/camera/F/calibration": 2, "/camera/L/calibration": 2,
-                      "/camera/F/pose": 2, "/camera/L/pose": 2, "/recorder/episode": 1}
+    assert counts == {
+        "/robot/state": 25,
+        "/robot/applied": 25,
+        "/sim/task": 25,
+        "/camera/F/image": 25,
+        "/camera/L/image": 25,
+        "/camera/F/calibration": 2,
+        "/camera/L/calibration": 2,
+        "/camera/F/pose": 2,
+        "/camera/L/pose": 2,
+        "/recorder/episode": 1,
+    }
     for topic, msgs in per_channel.items():
         assert [m.sequence for m, _ in msgs] == list(range(len(msgs))), topic
         log_times = [m.log_time for m, _ in msgs]
@@ -205,7 +218,12 @@ def test_records_a_session_into_a_self_contained_mcap(net, make_recorder, tmp_pa
     assert per_channel["/recorder/episode"][0][1].episode_id == "ep-0001"
     record = record_to_dict(metadata[EPISODE_RECORD])
     assert (record["task"], record["seed"], record["rig"], record["frames"], record["flags"]) == (
-        "lift", 3, "five15", {"F": 25, "L": 25}, [])
+        "lift",
+        3,
+        "five15",
+        {"F": 25, "L": 25},
+        [],
+    )
 
     ep = read_episode(path)
     assert ep.meta == meta and ep.metadata["ticks"] == 25

@@ -11,11 +11,11 @@ import numpy as np
 import pytest
 
 from services.core import topics
+from services.core.config import ConfigError
 from services.core.rig import Camera, load_rig
 from services.core.tensors import decode_jpeg
 from services.pb.common_pb2 import Header
 from services.pb.control_pb2 import EefAction, EefCommand
-from services.core.config import ConfigError
 from services.robot.base import RobotDriver
 from services.robot.config import ROBOT_DRIVERS, RobotConfig
 
@@ -48,8 +48,13 @@ def test_robot_service_follows_commands_and_reports_what_ran(zenoh_endpoint, mak
 
         def on_state(msg, _rx):
             # answer every tick with a 5 mm step along +x
-            pub.put(EefCommand(header=Header(seq=msg.tick), tick=msg.tick,
-                               action=EefAction(dp=[0.005, 0, 0], drot=[0, 0, 0], gripper=0.0)))
+            pub.put(
+                EefCommand(
+                    header=Header(seq=msg.tick),
+                    tick=msg.tick,
+                    action=EefAction(dp=[0.005, 0, 0], drot=[0, 0, 0], gripper=0.0),
+                )
+            )
             with cv:
                 states.append(msg)
                 cv.notify_all()
@@ -83,8 +88,16 @@ def test_applied_actions_are_what_ran_after_the_safety_layer(zenoh_endpoint, mak
         applied = []
         cv = threading.Condition()
         pub = bus.publisher(topics.COMMAND)
-        bus.subscribe(topics.ROBOT_STATE, lambda msg, _rx: pub.put(EefCommand(
-            header=Header(seq=msg.tick), tick=msg.tick, action=EefAction(dp=[0.2, 0, 0], drot=[0, 0, 0], gripper=0.0))))
+        bus.subscribe(
+            topics.ROBOT_STATE,
+            lambda msg, _rx: pub.put(
+                EefCommand(
+                    header=Header(seq=msg.tick),
+                    tick=msg.tick,
+                    action=EefAction(dp=[0.2, 0, 0], drot=[0, 0, 0], gripper=0.0),
+                )
+            ),
+        )
 
         def on_applied(msg, _rx):
             with cv:
@@ -115,6 +128,7 @@ def test_camera_service_publishes_frames_matching_its_calibration(zenoh_endpoint
                 with cv:
                     got[kind].append(msg)
                     cv.notify_all()
+
             return on_msg
 
         bus.subscribe(topics.camera_image("FL"), keep("image"))
@@ -148,19 +162,30 @@ def test_real_driver_is_chosen_by_import_path():
 
 
 def test_bad_config_is_one_clear_line():
-    proc = subprocess.run([sys.executable, "-m", "services.robot", "--set", "control_hz=-1"], cwd=ROOT,
-                          capture_output=True, text=True, timeout=60)
+    proc = subprocess.run(
+        [sys.executable, "-m", "services.robot", "--set", "control_hz=-1"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert proc.returncode == 2
     assert "control_hz" in proc.stderr and "Traceback" not in proc.stderr
 
 
-@pytest.mark.parametrize("module, driver", [("services.teleop", "scripted"), ("services.robot", "sim"),
-                                            ("services.camera", "sim")])
+@pytest.mark.parametrize(
+    "module, driver", [("services.teleop", "scripted"), ("services.robot", "sim"), ("services.camera", "sim")]
+)
 def test_a_sim_only_driver_is_refused_in_a_real_session_at_start_up(module, driver):
     # deploy/real.yaml says world: real; the scripted expert would wait for a task state no real
     # robot publishes and leave every tick stale, a sim camera would record a rendered scene.
-    proc = subprocess.run([sys.executable, "-m", module, "--config", "deploy/real.yaml", "--set", f"driver.type={driver}"],
-                          cwd=ROOT, capture_output=True, text=True, timeout=60)
+    proc = subprocess.run(
+        [sys.executable, "-m", module, "--config", "deploy/real.yaml", "--set", f"driver.type={driver}"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert proc.returncode == 2, proc.stderr
     assert f"driver '{driver}' only works in sim (world: real)" in proc.stderr and "Traceback" not in proc.stderr
     if driver == "scripted":
@@ -168,7 +193,12 @@ def test_a_sim_only_driver_is_refused_in_a_real_session_at_start_up(module, driv
 
 
 def test_a_driver_that_cannot_be_imported_is_one_line_before_any_connection():
-    proc = subprocess.run([sys.executable, "-m", "services.teleop", "--config", "deploy/real.yaml"], cwd=ROOT,
-                          capture_output=True, text=True, timeout=60)
+    proc = subprocess.run(
+        [sys.executable, "-m", "services.teleop", "--config", "deploy/real.yaml"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert proc.returncode == 2 and "Traceback" not in proc.stderr
     assert proc.stderr.strip() == "error: module 'mylab.teleop' cannot be imported: No module named 'mylab'"

@@ -15,9 +15,9 @@ from safetensors.torch import load_file
 
 from services.cli import main as viewscale
 from services.core.config import ConfigError
-from services.policy.model import action_steps, sample
 from services.core.normalizer import Normalizer
 from services.policy.checkpoint import CheckpointError, latest_checkpoint, load_policy
+from services.policy.model import action_steps, sample
 from services.trainer.config import train_config_from_dict
 from services.trainer.train import StepBatchSampler, TrainingError, load_train_data, train
 
@@ -25,10 +25,20 @@ torch.set_num_threads(1)
 
 VIEWS = ["F", "FL", "FR"]  # the views of the session's sim_dataset (tests/conftest.py)
 
+
 def tiny(data: Path, out: Path, **kw) -> dict:
-    cfg = {"preset": "tiny", "data": str(data), "out": str(out), "num_workers": 0, "progress": False,
-           "batch_size": 8, "log_every": 1, "val_every": 0, "checkpoint_every": 0,
-           "optim": {"warmup_steps": 5}}
+    cfg = {
+        "preset": "tiny",
+        "data": str(data),
+        "out": str(out),
+        "num_workers": 0,
+        "progress": False,
+        "batch_size": 8,
+        "log_every": 1,
+        "val_every": 0,
+        "checkpoint_every": 0,
+        "optim": {"warmup_steps": 5},
+    }
     for key, value in kw.items():
         if isinstance(value, dict) and isinstance(cfg.get(key), dict):
             cfg[key] = {**cfg[key], **value}
@@ -38,8 +48,9 @@ def tiny(data: Path, out: Path, **kw) -> dict:
 
 
 def test_loss_decreases_over_a_few_dozen_steps(sim_dataset, tmp_path):
-    cfg = train_config_from_dict(tiny(sim_dataset, tmp_path / "run", steps=80, batch_size=32, val_every=40,
-                                      optim={"warmup_steps": 20}))
+    cfg = train_config_from_dict(
+        tiny(sim_dataset, tmp_path / "run", steps=80, batch_size=32, val_every=40, optim={"warmup_steps": 20})
+    )
     result = train(cfg)
     assert result.compute_dtypes == {"float32"} and not result.channels_last  # CPU defaults: no autocast, NCHW
     losses = [h["loss"] for h in result.history]
@@ -75,7 +86,11 @@ def test_checkpoint_holds_what_serving_needs(sim_dataset, tmp_path):
     assert all(torch.equal(v, loaded.policy.state_dict()[k]) for k, v in served.items())
     # files are safetensors + JSON only
     assert sorted(p.name for p in result.checkpoint.iterdir()) == [
-        "model.safetensors", "policy.json", "train_state.json", "train_state.safetensors"]
+        "model.safetensors",
+        "policy.json",
+        "train_state.json",
+        "train_state.safetensors",
+    ]
 
 
 def test_save_load_and_resume_continue_the_same_run(sim_dataset, tmp_path):
@@ -111,8 +126,10 @@ def test_resume_with_another_model_config_is_refused(sim_dataset, tmp_path):
     from services.policy.model.policy import ModelConfig
 
     with pytest.raises(CheckpointError, match="down_dims"):
-        load_policy(tmp_path / "run", expect=ModelConfig.model_validate(
-            {**load_policy(tmp_path / "run").info["model"], "down_dims": [16, 32]}))
+        load_policy(
+            tmp_path / "run",
+            expect=ModelConfig.model_validate({**load_policy(tmp_path / "run").info["model"], "down_dims": [16, 32]}),
+        )
     fresh = train_config_from_dict({**tiny(sim_dataset, tmp_path / "run", steps=2), "resume": False})
     with pytest.raises(ConfigError, match="already has checkpoints"):
         train(fresh)
@@ -127,8 +144,15 @@ def test_wrong_action_space_for_the_config_is_a_clear_error(sim_dataset, tmp_pat
 
 def test_nan_loss_stops_and_keeps_the_last_good_checkpoint(sim_dataset, tmp_path):
     # An absurd learning rate blows the weights up within a few steps.
-    cfg = train_config_from_dict(tiny(sim_dataset, tmp_path / "run", steps=50, checkpoint_every=1,
-                                      optim={"lr": 1e30, "warmup_steps": 0, "weight_decay": 0.0}))
+    cfg = train_config_from_dict(
+        tiny(
+            sim_dataset,
+            tmp_path / "run",
+            steps=50,
+            checkpoint_every=1,
+            optim={"lr": 1e30, "warmup_steps": 0, "weight_decay": 0.0},
+        )
+    )
     with pytest.raises(TrainingError, match="loss is (nan|inf).*last good checkpoint"):
         train(cfg)
     good = latest_checkpoint(tmp_path / "run")
@@ -139,16 +163,37 @@ def test_nan_loss_stops_and_keeps_the_last_good_checkpoint(sim_dataset, tmp_path
 
 def test_cli_trains_and_reports(sim_dataset, tmp_path, capsys):
     out = tmp_path / "cli-run"
-    rc = viewscale(["train", "--data", str(sim_dataset), "--preset", "tiny", "--steps", "3", "--out", str(out),
-                    "--workers", "0", "--views", "F,FL", "--no-progress", "--json",
-                    "--set", "batch_size=4", "--set", "val_every=3"])
+    rc = viewscale(
+        [
+            "train",
+            "--data",
+            str(sim_dataset),
+            "--preset",
+            "tiny",
+            "--steps",
+            "3",
+            "--out",
+            str(out),
+            "--workers",
+            "0",
+            "--views",
+            "F,FL",
+            "--no-progress",
+            "--json",
+            "--set",
+            "batch_size=4",
+            "--set",
+            "val_every=3",
+        ]
+    )
     assert rc == 0
     summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert summary["step"] == 3 and Path(summary["checkpoint"]).is_dir()
     assert load_policy(out).info["views"] == ["F", "FL"]
     assert json.loads((out / "config.json").read_text())["batch_size"] == 4
-    rc = viewscale(["train", "--data", str(sim_dataset), "--steps", "3", "--out", str(tmp_path / "x"),
-                    "--set", "action_space=eef"])
+    rc = viewscale(
+        ["train", "--data", str(sim_dataset), "--steps", "3", "--out", str(tmp_path / "x"), "--set", "action_space=eef"]
+    )
     assert rc == 2
     assert "error:" in capsys.readouterr().err
 
@@ -156,8 +201,17 @@ def test_cli_trains_and_reports(sim_dataset, tmp_path, capsys):
 @pytest.mark.slow
 def test_overfitting_one_short_episode_reproduces_its_actions(sim_dataset, tmp_path):
     # One episode of one view: with two episodes the dataset's split holds one out, and training sees the other.
-    cfg = train_config_from_dict(tiny(sim_dataset, tmp_path / "run", steps=OVERFIT_STEPS, batch_size=16, views=["F"],
-                                      log_every=100, optim={"warmup_steps": 20}))
+    cfg = train_config_from_dict(
+        tiny(
+            sim_dataset,
+            tmp_path / "run",
+            steps=OVERFIT_STEPS,
+            batch_size=16,
+            views=["F"],
+            log_every=100,
+            optim={"warmup_steps": 20},
+        )
+    )
     train(cfg)
     policy = load_policy(tmp_path / "run").policy
     ds = load_train_data(cfg).train
@@ -195,11 +249,41 @@ def test_torchrun_trains_with_two_processes(sim_dataset, tmp_path):
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
     out = tmp_path / "ddp"
-    cmd = [torchrun, "--nproc_per_node", "2", "--master_addr", "127.0.0.1", "--master_port", str(port),
-           "-m", "services.cli", "train", "--data", str(sim_dataset), "--steps", "4", "--out", str(out),
-           "--workers", "0", "--device", "cpu", "--no-progress", "--set", "batch_size=4", "--set", "val_every=2"]
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300, cwd=Path(__file__).resolve().parents[2],
-                          env={**os.environ, "OMP_NUM_THREADS": "1"})
+    cmd = [
+        torchrun,
+        "--nproc_per_node",
+        "2",
+        "--master_addr",
+        "127.0.0.1",
+        "--master_port",
+        str(port),
+        "-m",
+        "services.cli",
+        "train",
+        "--data",
+        str(sim_dataset),
+        "--steps",
+        "4",
+        "--out",
+        str(out),
+        "--workers",
+        "0",
+        "--device",
+        "cpu",
+        "--no-progress",
+        "--set",
+        "batch_size=4",
+        "--set",
+        "val_every=2",
+    ]
+    proc = subprocess.run(
+        cmd,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        cwd=Path(__file__).resolve().parents[2],
+        env={**os.environ, "OMP_NUM_THREADS": "1"},
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     state = json.loads((out / "checkpoints" / "step_0000004" / "train_state.json").read_text())
     assert state["world"] == 2
@@ -215,14 +299,35 @@ def test_dinov3_lora_policy_trains_and_reloads_without_the_pretrained_file(sim_d
     from safetensors.torch import save_file
     from transformers import DINOv3ViTConfig, DINOv3ViTModel
 
-    vit_cfg = dict(hidden_size=32, intermediate_size=64, num_attention_heads=2, num_hidden_layers=2,
-                   num_register_tokens=2, patch_size=8)
+    vit_cfg = dict(
+        hidden_size=32,
+        intermediate_size=64,
+        num_attention_heads=2,
+        num_hidden_layers=2,
+        num_register_tokens=2,
+        patch_size=8,
+    )
     torch.manual_seed(0)
     weights = tmp_path / "dinov3-tiny.safetensors"
-    save_file({k: v.contiguous() for k, v in DINOv3ViTModel(DINOv3ViTConfig(**vit_cfg)).state_dict().items()},
-              str(weights))
-    cfg = train_config_from_dict(tiny(sim_dataset, tmp_path / "run", steps=2, model={"encoder": {
-        "kind": "dinov3", "vit_config": vit_cfg, "vit_weights": str(weights), "lora_rank": 4, "feature_dim": 16}}))
+    save_file(
+        {k: v.contiguous() for k, v in DINOv3ViTModel(DINOv3ViTConfig(**vit_cfg)).state_dict().items()}, str(weights)
+    )
+    cfg = train_config_from_dict(
+        tiny(
+            sim_dataset,
+            tmp_path / "run",
+            steps=2,
+            model={
+                "encoder": {
+                    "kind": "dinov3",
+                    "vit_config": vit_cfg,
+                    "vit_weights": str(weights),
+                    "lora_rank": 4,
+                    "feature_dim": 16,
+                }
+            },
+        )
+    )
     result = train(cfg)
     served = load_file(str(result.checkpoint / "model.safetensors"))
     pretrained = load_file(str(weights))

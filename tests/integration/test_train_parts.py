@@ -10,8 +10,8 @@ import torch
 from safetensors.torch import load_file, save_file
 
 from services.core.config import ConfigError
-from services.policy.model.policy import ModelConfig
 from services.policy.checkpoint import config_diff, optimizer_from_tensors, optimizer_to_tensors
+from services.policy.model.policy import ModelConfig
 from services.trainer.config import EmaConfig, explicitly_set, load_train_config, train_config_from_dict
 from services.trainer.train import EMA, StepBatchSampler, lr_at, resolve_model_config
 
@@ -21,8 +21,11 @@ torch.set_num_threads(1)
 def test_preset_yaml_env_cli_precedence(tmp_path):
     yaml = tmp_path / "train.yaml"
     yaml.write_text("preset: paper\nsteps: 100\nbatch_size: 8\noptim: {lr: 0.002}\n")
-    cfg = load_train_config(yaml, ["steps=300", "model.down_dims=[64,128,256]"],
-                            environ={"VIEWSCALE_BATCH_SIZE": "16", "VIEWSCALE_STEPS": "200"})
+    cfg = load_train_config(
+        yaml,
+        ["steps=300", "model.down_dims=[64,128,256]"],
+        environ={"VIEWSCALE_BATCH_SIZE": "16", "VIEWSCALE_STEPS": "200"},
+    )
     assert cfg.preset == "paper"
     assert cfg.steps == 300  # CLI over env over YAML
     assert cfg.batch_size == 16  # env over YAML over preset (64)
@@ -77,12 +80,12 @@ def test_ema_follows_diffusion_policys_schedule():
         model.weight.fill_(1.0)
     ema = EMA(model, EmaConfig(power=0.75))
     assert ema.decay(0) == 0.0
-    assert ema.decay(1) == pytest.approx(1 - 2 ** -0.75)
+    assert ema.decay(1) == pytest.approx(1 - 2**-0.75)
     assert ema.decay(10**9) == 0.9999  # clamped at max_decay
     with torch.no_grad():
         model.weight.fill_(3.0)
     ema.update(model, 1)
-    d = 1 - 2 ** -0.75
+    d = 1 - 2**-0.75
     assert torch.allclose(ema.model.weight, torch.full((1, 2), d * 1.0 + (1 - d) * 3.0))
     assert not ema.model.weight.requires_grad
 
@@ -94,8 +97,9 @@ def test_lr_warms_up_then_follows_a_cosine_to_zero():
     assert lr_at(10, cfg) == pytest.approx(1.0)
     assert lr_at(60, cfg) == pytest.approx(0.5)
     assert lr_at(110, cfg) == pytest.approx(0.0, abs=1e-12)
-    flat = train_config_from_dict({"preset": "tiny", "steps": 110, "optim": {"lr": 1.0, "warmup_steps": 10,
-                                                                              "schedule": "constant"}})
+    flat = train_config_from_dict(
+        {"preset": "tiny", "steps": 110, "optim": {"lr": 1.0, "warmup_steps": 10, "schedule": "constant"}}
+    )
     assert lr_at(100, flat) == 1.0
     assert not math.isnan(lr_at(0, train_config_from_dict({"preset": "tiny", "optim": {"warmup_steps": 0}})))
 

@@ -14,19 +14,18 @@ from pathlib import Path
 
 import torch
 
+from services.core.topics import TRAIN_PROGRESS, TRAIN_REQUEST
 from services.pb import trainer_pb2 as S
 from services.policy.checkpoint import load_policy
 from services.trainer.config import TrainerServiceConfig
-from services.core.topics import TRAIN_PROGRESS, TRAIN_REQUEST
 from services.trainer.service import SERVICE_NAME, TrainerService
-
 
 torch.set_num_threads(1)
 
 JOB_SETTINGS = ["num_workers=0", "batch_size=4", "log_every=1", "val_every=0", "checkpoint_every=0"]
 
 
-def _progress(bus) -> "queue.Queue[S.TrainProgress]":
+def _progress(bus) -> queue.Queue[S.TrainProgress]:
     q: queue.Queue = queue.Queue()
     bus.subscribe(TRAIN_PROGRESS, lambda msg, rx: q.put(msg))
     return q
@@ -54,8 +53,14 @@ def test_query_trains_and_publishes_progress(sim_dataset, tmp_path, make_bus):
         client = make_bus()
         client.wait_alive([SERVICE_NAME], timeout=10)
         progress = _progress(client)
-        req = S.TrainRequest(command=S.TRAIN_COMMAND_TRAIN, job_id="lift-tiny", data=str(sim_dataset),
-                             out=str(tmp_path / "run"), preset="tiny", steps=3)
+        req = S.TrainRequest(
+            command=S.TRAIN_COMMAND_TRAIN,
+            job_id="lift-tiny",
+            data=str(sim_dataset),
+            out=str(tmp_path / "run"),
+            preset="tiny",
+            steps=3,
+        )
         reply = S.TrainReply.FromString(client.query(TRAIN_REQUEST, req.SerializeToString(), timeout=10))
         assert reply.ok and reply.job_id == "lift-tiny"
         msgs = _until(progress, "lift-tiny", {S.TRAIN_STATE_DONE, S.TRAIN_STATE_FAILED})
@@ -71,8 +76,9 @@ def test_query_trains_and_publishes_progress(sim_dataset, tmp_path, make_bus):
         bad = S.TrainRequest(data=str(sim_dataset), out=str(tmp_path / "bad"), overrides=["optim.lr=fast"])
         reply = S.TrainReply.FromString(client.query(TRAIN_REQUEST, bad.SerializeToString(), timeout=10))
         assert not reply.ok and "lr" in reply.error
-        status = S.TrainReply.FromString(client.query(
-            TRAIN_REQUEST, S.TrainRequest(command=S.TRAIN_COMMAND_STATUS).SerializeToString(), timeout=10))
+        status = S.TrainReply.FromString(
+            client.query(TRAIN_REQUEST, S.TrainRequest(command=S.TRAIN_COMMAND_STATUS).SerializeToString(), timeout=10)
+        )
         assert status.ok and status.running == "" and list(status.queued) == []
 
 
@@ -86,7 +92,8 @@ def test_job_file_is_taken_trained_and_marked(sim_dataset, tmp_path, make_bus):
         progress = _progress(client)
         (jobs / "bad.yaml").write_text("data: /nonexistent\nout: x\nsteps: nope\n")
         (jobs / "after-collect.yaml").write_text(
-            f"data: {sim_dataset}\nout: {tmp_path / 'run'}\npreset: tiny\nsteps: 2\nviews: [F]\n")
+            f"data: {sim_dataset}\nout: {tmp_path / 'run'}\npreset: tiny\nsteps: 2\nviews: [F]\n"
+        )
         msgs = _until(progress, "after-collect", {S.TRAIN_STATE_DONE, S.TRAIN_STATE_FAILED})
         assert msgs[-1].state == S.TRAIN_STATE_DONE, msgs[-1].error
         deadline = time.monotonic() + 10
@@ -119,10 +126,20 @@ def test_cancel_stops_a_running_job_at_a_checkpoint(sim_dataset, tmp_path, make_
 
 def test_module_starts_announces_and_stops_on_sigterm(zenoh_endpoint, make_bus, tmp_path):
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    cmd = [sys.executable, "-m", "services.trainer", "--set", "bus.mode=client",
-           "--set", f"bus.connect=[{zenoh_endpoint}]", "--set", f"jobs_dir={tmp_path / 'jobs'}"]
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
-                            cwd=Path(__file__).resolve().parents[2])
+    cmd = [
+        sys.executable,
+        "-m",
+        "services.trainer",
+        "--set",
+        "bus.mode=client",
+        "--set",
+        f"bus.connect=[{zenoh_endpoint}]",
+        "--set",
+        f"jobs_dir={tmp_path / 'jobs'}",
+    ]
+    proc = subprocess.Popen(
+        cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=Path(__file__).resolve().parents[2]
+    )
     try:
         line = proc.stdout.readline()
         assert line.startswith("ready trainer vs/trainer/request"), proc.stderr.read()

@@ -9,8 +9,6 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 from scipy.spatial.transform import Rotation
 
-from services.core.rig import Camera, load_rig
-from services.core.normalizer import Normalizer
 from services.core.action_spaces import (
     eef_chunk_to_base,
     from_space,
@@ -19,6 +17,8 @@ from services.core.action_spaces import (
     to_space,
 )
 from services.core.geometry import rot6d, rot6d_to_matrix
+from services.core.normalizer import Normalizer
+from services.core.rig import Camera, load_rig
 
 FAST = settings(max_examples=60, deadline=None)
 
@@ -103,8 +103,11 @@ def test_camera_space_matches_point_motion_seen_by_a_rig_camera():
 
 
 @FAST
-@given(rvs=arrays(np.float64, (6, 3), elements=st.floats(-0.4, 0.4)), dps=arrays(np.float64, (6, 3), elements=finite),
-       R0=rotations())
+@given(
+    rvs=arrays(np.float64, (6, 3), elements=st.floats(-0.4, 0.4)),
+    dps=arrays(np.float64, (6, 3), elements=finite),
+    R0=rotations(),
+)
 def test_eef_space_uses_the_rotation_at_execution_time(rvs, dps, R0):
     """Roll out base actions (R_{t+1} = Rot(dr_t) R_t, p_{t+1} = p_t + dp_t); the EEF-space
     action of step t must be the step expressed in the EEF frame of its own tick t."""

@@ -31,7 +31,9 @@ def test_precedence_defaults_yaml_env_cli(tmp_path):
 
 def test_flow_values_parse():
     assert parse_overrides(["bus.connect=[tcp/127.0.0.1:7447]", "x=true"]) == {
-        "bus": {"connect": ["tcp/127.0.0.1:7447"]}, "x": True}
+        "bus": {"connect": ["tcp/127.0.0.1:7447"]},
+        "x": True,
+    }
 
 
 def test_unknown_field_is_an_error_naming_it(tmp_path):
@@ -59,8 +61,10 @@ def test_collecting_tests_that_need_no_model_does_not_import_torch():
     from pathlib import Path
 
     root = Path(__file__).resolve().parents[2]
-    code = ("import sys, pytest; rc = pytest.main(['--collect-only', '-q', '-p', 'no:cacheprovider', "
-            "'tests/unit/test_rig.py', 'tests/unit/test_registry.py', 'tests/integration/test_recorder_service.py']); "
-            "print('TORCH', 'torch' in sys.modules, 'RC', rc)")
+    code = (
+        "import sys, pytest; rc = pytest.main(['--collect-only', '-q', '-p', 'no:cacheprovider', "
+        "'tests/unit/test_rig.py', 'tests/unit/test_registry.py', 'tests/integration/test_recorder_service.py']); "
+        "print('TORCH', 'torch' in sys.modules, 'RC', rc)"
+    )
     out = subprocess.run([sys.executable, "-c", code], cwd=root, capture_output=True, text=True, timeout=120)
     assert "TORCH False RC 0" in out.stdout, out.stdout[-2000:] + out.stderr[-2000:]

@@ -21,11 +21,16 @@ def raw(n=10, frames=None, action_ticks=None, stale=(), state_ticks=None) -> Raw
     act[:, 0] = a_ticks  # dp_x = tick, so a test can see which action landed where
     frames = frames if frames is not None else {"F": T0 + np.arange(n) * PERIOD}
     return RawEpisode(
-        path=Path("ep.mcap"), episode_id="ep", meta={},
-        state_tick=ticks.astype(np.int64), state_ns=(T0 + ticks * PERIOD).astype(np.int64),
+        path=Path("ep.mcap"),
+        episode_id="ep",
+        meta={},
+        state_tick=ticks.astype(np.int64),
+        state_ns=(T0 + ticks * PERIOD).astype(np.int64),
         eef_pos=np.c_[ticks, np.zeros((len(ticks), 2))].astype(float),
-        eef_quat_wxyz=np.tile([1.0, 0, 0, 0], (len(ticks), 1)), gripper=np.zeros(len(ticks)),
-        action_tick=a_ticks.astype(np.int64), action=act,
+        eef_quat_wxyz=np.tile([1.0, 0, 0, 0], (len(ticks), 1)),
+        gripper=np.zeros(len(ticks)),
+        action_tick=a_ticks.astype(np.int64),
+        action=act,
         action_stale=np.isin(a_ticks, list(stale)),
         frame_ns={k: np.asarray(v, np.int64) for k, v in frames.items()},
         frame_data={k: [b""] * len(v) for k, v in frames.items()},
@@ -79,8 +84,7 @@ def test_stale_actions_are_counted_and_kept_unless_asked():
 
 
 def test_duplicate_states_and_orphan_actions_are_counted():
-    al = align(raw(n=5, state_ticks=[0, 1, 1, 2, 3, 4], action_ticks=[0, 1, 2, 3, 4, 5, 6]),
-               ["F"])
+    al = align(raw(n=5, state_ticks=[0, 1, 1, 2, 3, 4], action_ticks=[0, 1, 2, 3, 4, 5, 6]), ["F"])
     assert al.drops["duplicate_state"] == 1
     assert al.drops["action_without_state"] == 2
     assert list(al.tick) == [0, 1, 2, 3, 4]
@@ -133,7 +137,7 @@ def test_chunks_match_diffusion_policy_sampler():
     rows, inside = chunk_rows(12, 0, L, To, Tp)
     np.testing.assert_array_equal(rows, list(range(11, 20)) + [19] * 7)
     # the Ta actions executed from the current step are all real
-    assert inside[To - 1:To - 1 + Ta].all()
+    assert inside[To - 1 : To - 1 + Ta].all()
     # segments are sampled separately and never mix
     two = chunk_starts(np.array([L, L + 12]), To, Tp, Ta)
     assert len(two) == 13 + (12 - Tp + Ta + To - 1)

@@ -58,8 +58,13 @@ def test_one_step_with_cached_features_equals_the_loops_step():
     policy = DiffusionPolicy(cfg).eval()
     obs, state = obs_batch()
     steps = []
-    chunk = sample(policy, obs, state, generator=torch.Generator().manual_seed(3),
-                   on_step=lambda k, x, eps, x_prev: steps.append((k, x.clone(), eps.clone(), x_prev.clone())))
+    chunk = sample(
+        policy,
+        obs,
+        state,
+        generator=torch.Generator().manual_seed(3),
+        on_step=lambda k, x, eps, x_prev: steps.append((k, x.clone(), eps.clone(), x_prev.clone())),
+    )
     assert [s[0] for s in steps] == [66, 33, 0]
     assert torch.equal(chunk, steps[-1][3])
 

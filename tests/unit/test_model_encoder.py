@@ -19,8 +19,14 @@ from services.policy.model.encoder import (
 
 torch.set_num_threads(1)
 
-TINY_VIT = dict(hidden_size=32, intermediate_size=64, num_attention_heads=2, num_hidden_layers=2,
-                num_register_tokens=2, patch_size=8)
+TINY_VIT = dict(
+    hidden_size=32,
+    intermediate_size=64,
+    num_attention_heads=2,
+    num_hidden_layers=2,
+    num_register_tokens=2,
+    patch_size=8,
+)
 
 
 def test_centre_crop_is_the_middle_window_and_random_crop_varies():
@@ -34,9 +40,7 @@ def test_centre_crop_is_the_middle_window_and_random_crop_varies():
     out = crop_images(img, (7, 9), random=True)
     # every random crop is a true sub-window of its own image
     for i in range(8):
-        found = any(
-            torch.equal(out[i], img[i, :, t : t + 7, l : l + 9]) for t in range(4) for l in range(4)
-        )
+        found = any(torch.equal(out[i], img[i, :, t : t + 7, left : left + 9]) for t in range(4) for left in range(4))
         assert found
     with pytest.raises(ValueError, match="larger"):
         crop_images(img, (11, 11), random=False)
@@ -87,12 +91,15 @@ def _tiny_vit_file(tmp_path: Path) -> tuple[Path, dict[str, torch.Tensor]]:
 
 def test_dinov3_loads_local_weights_and_trains_only_lora(tmp_path):
     path, state = _tiny_vit_file(tmp_path)
-    cfg = EncoderConfig(kind="dinov3", vit_config=TINY_VIT, vit_weights=str(path), lora_rank=4, lora_alpha=8,
-                        feature_dim=16)
+    cfg = EncoderConfig(
+        kind="dinov3", vit_config=TINY_VIT, vit_weights=str(path), lora_rank=4, lora_alpha=8, feature_dim=16
+    )
     enc = build_encoder(cfg, (36, 36))
     own = enc.vit.state_dict()
     # pretrained weights under LoRA's wrapped names, untouched
-    assert torch.equal(own["model.layer.1.attention.v_proj.base_layer.weight"], state["model.layer.1.attention.v_proj.weight"])
+    assert torch.equal(
+        own["model.layer.1.attention.v_proj.base_layer.weight"], state["model.layer.1.attention.v_proj.weight"]
+    )
     assert torch.equal(own["embeddings.cls_token"], state["embeddings.cls_token"])
     trainable = {n for n, p in enc.named_parameters() if p.requires_grad}
     assert trainable and all("lora_" in n or n.startswith("proj.") for n in trainable)
@@ -111,4 +118,6 @@ def test_dinov3_with_weights_of_another_shape_is_a_clear_error(tmp_path):
     with pytest.raises(ValueError, match="shape mismatch"):
         build_encoder(cfg, (32, 32))
     with pytest.raises(FileNotFoundError, match="local safetensors"):
-        build_encoder(EncoderConfig(kind="dinov3", vit_config=TINY_VIT, vit_weights=str(tmp_path / "nope.safetensors")), (32, 32))
+        build_encoder(
+            EncoderConfig(kind="dinov3", vit_config=TINY_VIT, vit_weights=str(tmp_path / "nope.safetensors")), (32, 32)
+        )

@@ -24,16 +24,18 @@ def feed(ep: EpisodeCounts, ticks, period=PERIOD, cameras=("F",), stale=(), clip
         s = k if seq is None else seq(k)
         stamp = T0 + k * period
         ep.count("robot/state", RobotState(header=Header(stamp_ns=stamp, seq=s), tick=k), stamp)
-        applied = AppliedAction(header=Header(stamp_ns=stamp, seq=s), tick=k, stale=k in stale,
-                                limits=["speed"] if k in clipped else [])
+        applied = AppliedAction(
+            header=Header(stamp_ns=stamp, seq=s), tick=k, stale=k in stale, limits=["speed"] if k in clipped else []
+        )
         ep.count("robot/applied", applied, stamp)
         for c in cameras:
             ep.count(f"camera/{c}/image", object(), stamp)
 
 
 def meta(ep, ticks=0, drops=None, fraction=0.9):
-    return episode_meta(ep, drops=drops or {}, ticks=ticks, success=True, end_ns=T0 + 10**10,
-                        min_rate_fraction=fraction)
+    return episode_meta(
+        ep, drops=drops or {}, ticks=ticks, success=True, end_ns=T0 + 10**10, min_rate_fraction=fraction
+    )
 
 
 def test_a_clean_episode_has_no_flags_and_its_counts():
@@ -98,8 +100,10 @@ def test_events_come_first_in_order_and_once():
     assert ep.service_back("teleop") and not ep.service_back("sim")
     ep.note("write failed on robot/state: disk full")
     ep.service_left("teleop")
-    assert list(meta(ep).flags)[:3] == ["service teleop lost liveliness mid-episode",
-                                        "service teleop restarted mid-episode",
-                                        "write failed on robot/state: disk full"]
+    assert list(meta(ep).flags)[:3] == [
+        "service teleop lost liveliness mid-episode",
+        "service teleop restarted mid-episode",
+        "write failed on robot/state: disk full",
+    ]
     ep.malformed["camera/F/image"] += 3
     assert "malformed payloads (camera/F/image 3)" in meta(ep).flags

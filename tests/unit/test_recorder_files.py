@@ -18,7 +18,8 @@ from services.pb.episode_pb2 import EpisodeMeta
 from services.pb.sensors_pb2 import RobotState
 from services.recorder.config import RecorderConfig
 from services.recorder.reader import EpisodeReadError, read_episode
-from services.recorder.recover import RECOVERED_FLAG, RecoveryError, main as recover_main, salvage
+from services.recorder.recover import RECOVERED_FLAG, RecoveryError, salvage
+from services.recorder.recover import main as recover_main
 from services.recorder.validate import MalformedPayload, parse
 from services.recorder.writer import (
     EPISODE_CHANNEL,
@@ -62,8 +63,9 @@ def test_good_payloads_parse_as_their_topic():
 def _bad_payloads() -> dict[str, tuple[object, bytes, str]]:
     good_img = compressed_image(IMG, T0, "F")
     jpeg = encode_jpeg(IMG)
-    garbage = CompressedImage(frame_id="F", format="jpeg", data=b"\xff\xd8" + bytes(RNG.integers(0, 255, 500,
-                                                                                             dtype=np.uint8)) + b"\xff\xd9")
+    garbage = CompressedImage(
+        frame_id="F", format="jpeg", data=b"\xff\xd8" + bytes(RNG.integers(0, 255, 500, dtype=np.uint8)) + b"\xff\xd9"
+    )
     garbage.timestamp.FromNanoseconds(T0)
     cut = CompressedImage(frame_id="F", format="jpeg", data=jpeg[: len(jpeg) // 2])
     cut.timestamp.FromNanoseconds(T0)
@@ -179,9 +181,24 @@ def test_read_episode_gives_typed_metadata_and_decoded_messages(tmp_path):
     _, meta = write_episode(path, n=12)
     ep = read_episode(path)
     assert ep.metadata == {
-        "episode_id": "ep2", "task": "lift", "seed": 7, "rig": "five15", "success": True, "control_hz": 50.0,
-        "achieved_hz": 50.0, "lockstep": False, "ticks": 12, "stale_ticks": 0, "clipped_ticks": 0, "frames": {"F": 12}, "drops": {}, "malformed": {},
-        "gaps": {}, "flags": ["camera F: example flag"], "start_ns": T0, "end_ns": meta.end_ns,
+        "episode_id": "ep2",
+        "task": "lift",
+        "seed": 7,
+        "rig": "five15",
+        "success": True,
+        "control_hz": 50.0,
+        "achieved_hz": 50.0,
+        "lockstep": False,
+        "ticks": 12,
+        "stale_ticks": 0,
+        "clipped_ticks": 0,
+        "frames": {"F": 12},
+        "drops": {},
+        "malformed": {},
+        "gaps": {},
+        "flags": ["camera F: example flag"],
+        "start_ns": T0,
+        "end_ns": meta.end_ns,
     }
     assert ep.meta == meta and ep.cameras == ["F"] and ep.flags == ["camera F: example flag"]
     states = ep.messages("robot/state")
@@ -211,8 +228,17 @@ def test_read_episode_names_the_file_when_it_cannot_read_it(tmp_path):
 
 
 def test_metadata_record_round_trips():
-    meta = EpisodeMeta(episode_id="e", seed=2**63, control_hz=10.0, achieved_hz=9.5, ticks=3, success=False,
-                       flags=["a", "b: c"], start_ns=1, end_ns=2)
+    meta = EpisodeMeta(
+        episode_id="e",
+        seed=2**63,
+        control_hz=10.0,
+        achieved_hz=9.5,
+        ticks=3,
+        success=False,
+        flags=["a", "b: c"],
+        start_ns=1,
+        end_ns=2,
+    )
     meta.drops["camera/F/image"] = 4
     rec = meta_to_record(meta)
     assert all(isinstance(v, str) for v in rec.values())

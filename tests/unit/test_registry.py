@@ -99,9 +99,11 @@ def test_the_type_can_be_switched_from_the_command_line(tmp_path):
 
 def test_the_teleop_process_never_loads_mujoco():
     # The scripted expert reads the sim's task state over the bus; MuJoCo is for the simulating drivers.
-    code = ("import sys; from services.teleop.config import TeleopConfig; from services.teleop.service import "
-            "make_driver; d = make_driver(TeleopConfig()); d.reset('lift'); "
-            "print(type(d).__name__, 'mujoco' in sys.modules)")
+    code = (
+        "import sys; from services.teleop.config import TeleopConfig; from services.teleop.service import "
+        "make_driver; d = make_driver(TeleopConfig()); d.reset('lift'); "
+        "print(type(d).__name__, 'mujoco' in sys.modules)"
+    )
     out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
     assert out.stdout.split() == ["ScriptedTeleop", "False"]

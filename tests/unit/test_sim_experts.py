@@ -6,12 +6,12 @@ import math
 import numpy as np
 import pytest
 
-from services.core.rig import load_rig
 from services.core.geometry import matrix_to_rotvec as rot_log
 from services.core.geometry import nearest_yaw, rot_z
 from services.core.geometry import quat_wxyz_to_matrix as quat_to_mat
-from sim.experts import make_expert
+from services.core.rig import load_rig
 from services.core.robot_types import ObjectPose, RobotSnapshot
+from sim.experts import make_expert
 from sim.world import SimWorld
 
 

@@ -1,7 +1,6 @@
 """The scene's cameras are the rig's cameras: a known 3D point lands where Camera.project says
 (measured: within 0.1 px at 320 x 240, 0.21 px at 84 x 84; asserted: 0.5 px)."""
 
-
 import mujoco
 import numpy as np
 import pytest
@@ -16,7 +15,9 @@ MARKER = (
     "    </body>\n"
 )
 MARKER_MATERIAL = '    <material name="marker" rgba="1 0 1 1" emission="1" specular="0" shininess="0"/>\n'
-POINTS = np.array([[0.5, 0.0, 0.1], [0.62, -0.22, 0.04], [0.3, 0.22, 0.3], [0.45, 0.15, 0.035]])  # centres clear of the table: a half-hidden blob is off-centre
+POINTS = np.array(
+    [[0.5, 0.0, 0.1], [0.62, -0.22, 0.04], [0.3, 0.22, 0.3], [0.45, 0.15, 0.035]]
+)  # centres clear of the table: a half-hidden blob is off-centre
 
 
 def _marker_model(rig, width, height):
@@ -40,7 +41,9 @@ def _centroid(img: np.ndarray) -> tuple[np.ndarray, float]:
     return np.array([(w * us).sum() / total, (w * vs).sum() / total]), float(total)
 
 
-@pytest.mark.parametrize("rig_name,width,height", [("five15", 320, 240), ("front_side_top", 200, 200), ("three30", 84, 84)])
+@pytest.mark.parametrize(
+    "rig_name,width,height", [("five15", 320, 240), ("front_side_top", 200, 200), ("three30", 84, 84)]
+)
 def test_a_known_point_renders_where_the_calibration_projects_it(rig_name, width, height):
     rig = load_rig(rig_name)
     model, gid = _marker_model(rig, width, height)

@@ -4,20 +4,19 @@ the action limits, and clear errors on bad input."""
 import math
 import threading
 
-
 import mujoco
 import numpy as np
 import pytest
 
-from services.core.rig import load_rig
 from services.core.geometry import quat_wxyz_to_matrix as quat_to_mat
 from services.core.geometry import rot_z
-from sim.experts import make_expert
-from sim.ik import SiteIk
-from sim.scene import ARM_JOINTS, EEF_SITE, R_DOWN
+from services.core.rig import load_rig
 from services.core.robot_types import EefDelta
 from services.robot.safety import Safety, SafetyConfig
 from sim.backends import SimRobot
+from sim.experts import make_expert
+from sim.ik import SiteIk
+from sim.scene import ARM_JOINTS, EEF_SITE, R_DOWN
 from sim.world import MAX_LEAD, SimWorld
 
 ZERO = np.zeros(3)

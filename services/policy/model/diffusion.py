@@ -13,7 +13,7 @@ worker serves and what multi-view composition calls with eps averaged over views
 
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import torch
 import torch.nn.functional as F

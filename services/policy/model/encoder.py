@@ -64,7 +64,7 @@ class EncoderConfig(Frozen):
     lora_targets: tuple[str, ...] = ("q_proj", "k_proj", "v_proj", "o_proj")  # module names LoRA wraps
 
     @model_validator(mode="after")
-    def _check(self) -> "EncoderConfig":
+    def _check(self) -> EncoderConfig:
         if self.kind == "dinov3" and self.crop is not None:
             patch = self.patch_size
             if self.crop[0] % patch or self.crop[1] % patch:

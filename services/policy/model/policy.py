@@ -43,10 +43,13 @@ class ModelConfig(Frozen):
     noise: NoiseConfig = Field(default_factory=NoiseConfig)  # schedulers
 
     @model_validator(mode="after")
-    def _check(self) -> "ModelConfig":
+    def _check(self) -> ModelConfig:
         factor = 2 ** (len(self.down_dims) - 1)
         if self.pred_horizon % factor:
-            raise ValueError(f"pred_horizon {self.pred_horizon} must be a multiple of {factor} for {len(self.down_dims)} U-Net levels")
+            raise ValueError(
+                f"pred_horizon {self.pred_horizon} must be a multiple of {factor} "
+                f"for {len(self.down_dims)} U-Net levels"
+            )
         if self.obs_horizon - 1 + self.n_action_steps > self.pred_horizon:
             raise ValueError("obs_horizon - 1 + n_action_steps must not exceed pred_horizon")
         if any(d % self.n_groups for d in self.down_dims):
@@ -102,7 +105,7 @@ class DiffusionPolicy(nn.Module):
             k = torch.full((x_k.shape[0],), int(k), device=x_k.device, dtype=torch.long)
         return self.noise_model(x_k, k.to(x_k.device), cond)  # (B, Tp, Da)
 
-    def use_channels_last(self) -> "DiffusionPolicy":
+    def use_channels_last(self) -> DiffusionPolicy:
         """Store the encoder's conv weights and feed its images as NHWC (the layout cuDNN prefers)."""
         self.encoder.to(memory_format=torch.channels_last)
         self.channels_last = True

@@ -24,7 +24,13 @@ _PAPER: dict[str, Any] = {
     "optim": {"lr": 1e-4, "warmup_steps": 500, "weight_decay": 1e-6, "betas": [0.95, 0.999]},
     "ema": {"power": 0.75},
     "model": {
-        "encoder": {"kind": "resnet18", "width": 64, "stage_strides": [1, 2, 2, 2], "num_keypoints": 32, "feature_dim": 64},
+        "encoder": {
+            "kind": "resnet18",
+            "width": 64,
+            "stage_strides": [1, 2, 2, 2],
+            "num_keypoints": 32,
+            "feature_dim": 64,
+        },
         "down_dims": [512, 1024, 2048],
         "diffusion_step_embed_dim": 128,
     },
