@@ -142,7 +142,7 @@ def main() -> None:
                 "log_every": 1,
                 "val_every": 0,
                 "checkpoint_every": 0,
-                "validate": False,
+                "validation": False,
             }
         )
         with GpuSampler() as gpu:

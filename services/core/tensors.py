@@ -45,6 +45,44 @@ def decode_jpeg(data: bytes) -> np.ndarray:
     return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
 
 
+_REDUCED = {
+    8: cv2.IMREAD_REDUCED_COLOR_8,
+    4: cv2.IMREAD_REDUCED_COLOR_4,
+    2: cv2.IMREAD_REDUCED_COLOR_2,
+    1: cv2.IMREAD_COLOR,
+}
+
+
+class FrameSizeError(ValueError):
+    """A frame whose size is not the one its camera's calibration says (the message: WxH)."""
+
+
+def decode_resized(data: bytes, size: tuple[int, int], src: tuple[int, int]) -> np.ndarray | None:
+    """JPEG of ``src`` (W, H) pixels -> (H, W, 3) uint8 RGB at ``size`` (W, H); None if undecodable.
+
+    When the source is at least twice the target, libjpeg decodes at 1/2, 1/4 or 1/8 scale
+    directly (DCT scaling), which is much faster than decoding in full and shrinking. A frame
+    whose size is not ``src`` raises FrameSizeError (its calibration would not fit it).
+    """
+    w, h = size
+    factor = 1
+    for f in (8, 4, 2):
+        if src[0] // f >= w and src[1] // f >= h:
+            factor = f
+            break
+    if len(data) < 4 or data[:2] != b"\xff\xd8":
+        return None
+    bgr = cv2.imdecode(np.frombuffer(data, np.uint8), _REDUCED[factor])
+    if bgr is None:
+        return None
+    expect = (-(-src[0] // factor), -(-src[1] // factor))  # libjpeg rounds scaled sizes up
+    if (bgr.shape[1], bgr.shape[0]) != expect:
+        raise FrameSizeError(f"{bgr.shape[1] * factor}x{bgr.shape[0] * factor}")
+    if bgr.shape[1] != w or bgr.shape[0] != h:
+        bgr = cv2.resize(bgr, (w, h), interpolation=cv2.INTER_AREA)
+    return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+
+
 def compressed_image(rgb: np.ndarray, stamp_ns: int, frame_id: str, quality: int = 90) -> CompressedImage:
     msg = CompressedImage(frame_id=frame_id, format="jpeg", data=encode_jpeg(rgb, quality))
     msg.timestamp.FromNanoseconds(stamp_ns)

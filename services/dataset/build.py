@@ -27,6 +27,7 @@ import numpy as np
 
 from services.core.action_spaces import ACTION_DIM, STATE_NAMES, check_space, resolve_state_frame
 from services.core.normalizer import Normalizer, NormalizerStats
+from services.core.tensors import FrameSizeError, decode_resized
 from services.dataset.contact_sheet import write_contact_sheet
 from services.dataset.episodes import (
     EpisodeError,
@@ -145,44 +146,6 @@ def find_episodes(raw: Path | list[Path]) -> list[Path]:
             raise DatasetError(f"two episodes named {f.stem}: {stems[f.stem]} and {f}")
         stems[f.stem] = f
     return found
-
-
-_REDUCED = {
-    8: cv2.IMREAD_REDUCED_COLOR_8,
-    4: cv2.IMREAD_REDUCED_COLOR_4,
-    2: cv2.IMREAD_REDUCED_COLOR_2,
-    1: cv2.IMREAD_COLOR,
-}
-
-
-class FrameSizeError(ValueError):
-    pass
-
-
-def decode_resized(data: bytes, size: tuple[int, int], src: tuple[int, int]) -> np.ndarray | None:
-    """JPEG of ``src`` (W, H) pixels -> (H, W, 3) uint8 RGB at ``size`` (W, H); None if undecodable.
-
-    When the source is at least twice the target, libjpeg decodes at 1/2, 1/4 or 1/8 scale
-    directly (DCT scaling), which is much faster than decoding in full and shrinking. A frame
-    whose size is not ``src`` raises FrameSizeError (its calibration would not fit it).
-    """
-    w, h = size
-    factor = 1
-    for f in (8, 4, 2):
-        if src[0] // f >= w and src[1] // f >= h:
-            factor = f
-            break
-    if len(data) < 4 or data[:2] != b"\xff\xd8":
-        return None
-    bgr = cv2.imdecode(np.frombuffer(data, np.uint8), _REDUCED[factor])
-    if bgr is None:
-        return None
-    expect = (-(-src[0] // factor), -(-src[1] // factor))  # libjpeg rounds scaled sizes up
-    if (bgr.shape[1], bgr.shape[0]) != expect:
-        raise FrameSizeError(f"{bgr.shape[1] * factor}x{bgr.shape[0] * factor}")
-    if bgr.shape[1] != w or bgr.shape[0] != h:
-        bgr = cv2.resize(bgr, (w, h), interpolation=cv2.INTER_AREA)
-    return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
 
 
 def _jpeg_size(data: bytes) -> tuple[int, int] | None:
@@ -530,8 +493,12 @@ def _episode_view(info: dict[str, Any], camera: dict[str, Any] | None) -> dict[s
 
 def _meta(params: BuildParams, episodes: list[dict[str, Any]], train: list[str], val: list[str]) -> dict[str, Any]:
     cameras, varies = _cameras(episodes, params.views)
+    rates = sorted({float(e["info"]["meta"]["control_hz"]) for e in episodes if e["info"]["meta"].get("control_hz")})
+    tasks = sorted({e["info"]["meta"]["task"] for e in episodes if e["info"]["meta"].get("task")})
     return {
         "version": VERSION,
+        "control_hz": rates[0] if len(rates) == 1 else None,  # None: the episodes disagree (or never said)
+        "tasks": tasks,
         "action_space": params.space,
         "state_frame": params.state_frame,
         "action_dim": ACTION_DIM,

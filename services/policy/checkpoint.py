@@ -16,6 +16,7 @@ current). Each folder has:
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import shutil
@@ -148,6 +149,23 @@ def save_checkpoint(
         if old != path:
             shutil.rmtree(old, ignore_errors=True)
     return path
+
+
+def checkpoint_sha256(path: str | Path) -> str:
+    """sha256 over what serving loads (the weights, then policy.json): equal on server and workers."""
+    path = resolve_checkpoint(path)
+    h = hashlib.sha256()
+    for name in (MODEL_FILE, POLICY_FILE):
+        with open(path / name, "rb") as f:
+            while chunk := f.read(1 << 20):
+                h.update(chunk)
+    return h.hexdigest()
+
+
+def model_id(path: str | Path) -> str:
+    """``<run directory>@<checkpoint>``, e.g. ``lift-five15-camera@step_0002000``."""
+    path = resolve_checkpoint(path)
+    return f"{path.parent.parent.name}@{path.name}"
 
 
 def read_info(path: str | Path) -> dict[str, Any]:

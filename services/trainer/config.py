@@ -49,7 +49,7 @@ class TrainConfig(Frozen):
     amp: Literal["auto", "bf16", "off"] = "auto"  # bf16 autocast: auto = on for CUDA devices that support it
     channels_last: Literal["auto", "on", "off"] = "auto"  # NHWC images for the encoder: auto = on for CUDA
     num_workers: int = Field(2, ge=0)  # data loader worker processes
-    validate: bool = True  # validate on the dataset's held-out episodes (its build decides which)
+    validation: bool = True  # validate on the dataset's held-out episodes (its build decides which)
     val_every: int = Field(200, ge=0)  # steps between validation passes; 0 = only at the end
     val_batches: int = Field(8, ge=1)  # batches per validation pass
     log_every: int = Field(10, ge=1)  # steps between log.jsonl lines and progress events
@@ -59,6 +59,8 @@ class TrainConfig(Frozen):
     progress: bool = True  # progress bar on stderr
     action_space: Literal["base", "eef", "camera"] | None = None  # expected action space; None = the dataset's
     views: list[str] | None = None  # train on these views of the dataset only; None = all
+    cond_dropout: float = Field(0.0, ge=0.0, lt=1.0)  # share of samples trained unconditioned (zero cond):
+    # lets the server compose views as an exact product with the unconditional branch
     model: ModelConfig = Field(default_factory=ModelConfig)  # policy architecture
     optim: OptimConfig = Field(default_factory=OptimConfig)  # optimiser and LR schedule
     ema: EmaConfig = Field(default_factory=EmaConfig)  # weight averaging

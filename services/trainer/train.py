@@ -123,7 +123,7 @@ def load_train_data(cfg: TrainConfig) -> TrainData:
     kwargs = dict(views=cfg.views, **horizons)
     try:
         train_ds = PseudoDemoDataset(cfg.data, split="train", **kwargs)
-        val_ds = PseudoDemoDataset(cfg.data, split="val", **kwargs) if cfg.validate else None
+        val_ds = PseudoDemoDataset(cfg.data, split="val", **kwargs) if cfg.validation else None
     except DatasetError as exc:
         raise TrainingError(str(exc)) from exc
     except ValueError as exc:  # windows that do not fit the episodes (e.g. Tp too long)
@@ -192,13 +192,14 @@ def check_action_space(cfg: TrainConfig, meta: dict[str, Any]) -> str:
 class LossModule(torch.nn.Module):
     """The training loss as a module's forward, so DistributedDataParallel can wrap it."""
 
-    def __init__(self, policy: DiffusionPolicy, scheduler):
+    def __init__(self, policy: DiffusionPolicy, scheduler, cond_dropout: float = 0.0):
         super().__init__()
         self.policy = policy
         self.scheduler = scheduler
+        self.cond_dropout = cond_dropout
 
     def forward(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
-        return compute_loss(self.policy, self.scheduler, batch)
+        return compute_loss(self.policy, self.scheduler, batch, self.cond_dropout)
 
 
 def lr_at(step: int, cfg: TrainConfig) -> float:
@@ -405,7 +406,7 @@ def train(
         if main:
             log.info("resuming %s from step %d", out, start)
     sched = make_train_scheduler(model_cfg.noise)
-    net: torch.nn.Module = LossModule(policy, sched)
+    net: torch.nn.Module = LossModule(policy, sched, cfg.cond_dropout)
     if distributed:
         net = torch.nn.parallel.DistributedDataParallel(
             net, device_ids=[device.index] if device.type == "cuda" else None
@@ -438,6 +439,8 @@ def train(
         "To": model_cfg.obs_horizon,
         "Tp": model_cfg.pred_horizon,
         "n_action_steps": model_cfg.n_action_steps,
+        "control_hz": data.meta.get("control_hz"),
+        "tasks": data.meta.get("tasks", []),
         "dataset": {
             "path": data.source,
             "episodes": data.meta.get("train_episodes") or [e.get("id") for e in data.meta.get("episodes", [])],

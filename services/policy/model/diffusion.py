@@ -44,11 +44,21 @@ def make_inference_scheduler(cfg: NoiseConfig, num_inference_steps: int | None =
     return sched
 
 
-def compute_loss(policy: DiffusionPolicy, scheduler: DDPMScheduler, batch: dict[str, torch.Tensor]) -> torch.Tensor:
-    """Epsilon-prediction MSE on one batch: obs (B, To, 3, H, W), state (B, To, Ds), action (B, Tp, Da)."""
+def compute_loss(
+    policy: DiffusionPolicy, scheduler: DDPMScheduler, batch: dict[str, torch.Tensor], cond_dropout: float = 0.0
+) -> torch.Tensor:
+    """Epsilon-prediction MSE on one batch: obs (B, To, 3, H, W), state (B, To, Ds), action (B, Tp, Da).
+
+    ``cond_dropout``: the share of samples whose conditioning is replaced by zeros, so the same
+    network also learns the unconditional noise eps(x_k, k, 0) (for composing views as an exact
+    product, ``services.policy.aggregation.compose_with_unconditional``).
+    """
     actions = batch["action"]  # (B, Tp, Da)
     B = actions.shape[0]
     cond = policy.encode(batch["obs"], batch.get("state"))  # (B, Dc)
+    if cond_dropout > 0:
+        keep = torch.rand(B, device=cond.device) >= cond_dropout  # (B,)
+        cond = cond * keep[:, None].to(cond.dtype)
     noise = torch.randn(actions.shape, device=actions.device, dtype=actions.dtype)  # (B, Tp, Da)
     k = torch.randint(0, scheduler.config.num_train_timesteps, (B,), device=actions.device).long()  # (B,)
     noisy = scheduler.add_noise(actions, noise, k)  # (B, Tp, Da)
