@@ -176,6 +176,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     _add_optional(sub, "services.dataset.cli", "add_dataset_commands")
     _add_optional(sub, "services.trainer.cli", "add_train_command")
+    _add_optional(sub, "services.policy.cli", "add_policy_commands")
     return parser
 
 

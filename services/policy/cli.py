@@ -1,0 +1,155 @@
+"""``viewscale serve`` and ``viewscale worker`` (also ``python -m services.policy serve|worker``).
+
+    viewscale serve --checkpoint runs/lift --listen 127.0.0.1:50051 --views F,FL,FR --workers 3
+    viewscale serve --checkpoint runs/lift --worker 10.0.0.5:7001 --worker 10.0.0.6:7001
+    viewscale serve --checkpoint runs/lift --worker dns:///policy-worker:7001   # every replica, round-robin
+    viewscale worker --checkpoint runs/lift --listen 0.0.0.0:7001
+
+Settings: defaults < --config YAML (section ``policy`` / ``worker``) < VIEWSCALE_<FIELD> env < the
+flags below < --set key=value. The token is best given as VIEWSCALE_TOKEN (a flag shows in ps).
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import signal
+import sys
+from pathlib import Path
+
+
+def _load(model, args: argparse.Namespace, flags: list[str], section: str):
+    """The config from --config, env, the flags given and --set; None (after one error line) if invalid.
+
+    Imports stay inside the commands: `viewscale collect` must not pay for torch."""
+    from services.core.config import ConfigError, load_config
+    from services.core.runtime import configure_logging
+
+    overrides = []
+    for name in flags:
+        value = getattr(args, name, None)
+        if value is None or value is False or value == []:
+            continue
+        if isinstance(value, list):
+            value = "[" + ",".join(str(v) for v in value) + "]"
+        overrides.append(f"{name}={value}")
+    try:
+        cfg = load_config(model, args.config, [*overrides, *args.set], section=section)
+    except ConfigError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return None
+    configure_logging(cfg.log_level)
+    return cfg
+
+
+def _run(coro_factory) -> int:
+    stop = asyncio.Event()
+
+    async def main() -> int:
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):
+            loop.add_signal_handler(sig, stop.set)
+        return await coro_factory(stop)
+
+    return asyncio.run(main())
+
+
+def _announce(line: str) -> None:
+    print(line, flush=True)
+
+
+def _error(exc: Exception, code: int = 2) -> int:
+    print(f"error: {exc}", file=sys.stderr)
+    return code
+
+
+def _serve(args: argparse.Namespace) -> int:
+    from services.policy.config import ServerConfig
+
+    if args.views:
+        args.views = [v.strip() for v in args.views.split(",") if v.strip()]
+    flags = ["checkpoint", "listen", "views", "workers", "worker", "in_process", "device", "threads", "rig", "task"]
+    cfg = _load(ServerConfig, args, flags, "policy")
+    if cfg is None:
+        return 2
+    from services.policy.checkpoint import CheckpointError
+    from services.policy.server import LocalWorkers, load_spec, serve_policy
+
+    try:
+        load_spec(cfg)  # a bad checkpoint or view is one line, before any process starts
+    except (CheckpointError, ValueError, OSError) as exc:
+        return _error(exc)
+    log_dir = Path(args.log_dir) if args.log_dir else None
+    if log_dir:
+        log_dir.mkdir(parents=True, exist_ok=True)
+    try:
+        with LocalWorkers(cfg, cfg.workers if not cfg.in_process else 0, log_dir) as local:
+            addresses = [*cfg.worker, *local.addresses]
+            return _run(lambda stop: serve_policy(cfg, stop, addresses, _announce))
+    except (RuntimeError, TimeoutError) as exc:
+        return _error(exc, 1)
+
+
+def _worker(args: argparse.Namespace) -> int:
+    from services.policy.config import WorkerConfig
+
+    cfg = _load(WorkerConfig, args, ["checkpoint", "listen", "device", "threads"], "worker")
+    if cfg is None:
+        return 2
+    from services.policy.checkpoint import CheckpointError, read_info
+    from services.policy.worker import serve_worker
+
+    try:
+        read_info(cfg.checkpoint)
+    except (CheckpointError, ValueError, OSError) as exc:
+        return _error(exc)
+    return _run(lambda stop: serve_worker(cfg, stop, _announce))
+
+
+def add_policy_commands(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser(
+        "serve",
+        help="serve a trained policy over gRPC (GetAction), composing camera views",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("--checkpoint", help="checkpoint folder or run directory (its latest checkpoint)")
+    p.add_argument("--listen", help="host:port to serve on (default 127.0.0.1:50051; port 0: any free one)")
+    p.add_argument("--views", help="cameras composed by default, e.g. F,FL,FR (default: the training views)")
+    p.add_argument("--workers", type=int, help="local worker processes to start (default 0: in-process)")
+    p.add_argument(
+        "--worker",
+        action="append",
+        default=[],
+        metavar="ADDR",
+        help="a running worker, host:port or dns:///name:port (repeatable)",
+    )
+    p.add_argument("--in-process", action="store_true", help="compute every view in this process")
+    p.add_argument("--device", help="cpu, cuda or cuda:N (default cpu)")
+    p.add_argument("--threads", type=int, help="intra-op threads per model (default 1)")
+    p.add_argument("--rig", help="rig preset or YAML with cameras the checkpoint was not trained on")
+    p.add_argument("--task", help="with --rig: the task whose framing the rig takes")
+    p.add_argument("--log-dir", help="write local workers' logs here")
+    p.add_argument("--config", help="YAML with a `policy` section")
+    p.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override any setting: token=..., tls.cert=..., request_timeout_s=2 (repeatable)",
+    )
+    p.set_defaults(func=_serve)
+
+    w = subparsers.add_parser(
+        "worker",
+        help="a denoising worker for `viewscale serve --worker ADDR`",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    w.add_argument("--checkpoint", help="checkpoint folder or run directory (the server's)")
+    w.add_argument("--listen", help="host:port (default 127.0.0.1:0)")
+    w.add_argument("--device", help="cpu, cuda or cuda:N (default cpu)")
+    w.add_argument("--threads", type=int, help="intra-op threads (default 1)")
+    w.add_argument("--config", help="YAML with a `worker` section")
+    w.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override any setting")
+    w.set_defaults(func=_worker)

@@ -1,0 +1,394 @@
+"""The robot-side client of the policy server: numpy, grpcio and protobuf only (never torch).
+
+    client = PolicyClient("127.0.0.1:50051")          # connects, retries, checks GetPolicyInfo
+    chunk = client.get_action(frames, states)           # frames: camera -> To (image, stamp_ns)
+    chunk.actions                                       # (Tp, 7) base frame: dp, drot (axis-angle), gripper
+    runner = ChunkRunner(client, control_hz=20)         # at the control rate, from a queue:
+    action, fresh = runner.act(tick, frames_now, state_now)
+
+``ChunkRunner`` executes a chunk's actions one per control tick, asks for the next chunk ahead of
+time from the measured latency, drops the actions that went stale while a request was in flight,
+and never blocks the control loop: when no action is queued for a tick it answers a hold (zero
+motion, the last gripper target) and counts an underrun. In lockstep (``blocking=True``) there is
+no wall clock to race, so it waits for the chunk instead.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import deque
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+
+import grpc
+import numpy as np
+
+from services.core.tensors import encode_jpeg, to_tensor
+from services.pb import policy_pb2, policy_pb2_grpc
+from services.policy import POLICY_PROTO_VERSION
+
+Image = bytes | np.ndarray  # JPEG bytes, or (H, W, 3) uint8 RGB
+
+
+class PolicyError(RuntimeError):
+    """The server refused or could not answer; ``code`` is the gRPC status (None: not a gRPC error)."""
+
+    def __init__(self, message: str, code: grpc.StatusCode | None = None):
+        super().__init__(message)
+        self.code = code
+
+
+class PolicyChanged(PolicyError):
+    """After a reconnect the server holds another checkpoint (or protocol): stop and look."""
+
+
+@dataclass(frozen=True)
+class State:
+    """The robot at one observation step (base frame)."""
+
+    eef_pos: np.ndarray  # (3,)
+    eef_quat_wxyz: np.ndarray  # (4,)
+    gripper: float
+    stamp_ns: int
+
+
+@dataclass(frozen=True)
+class ActionChunk:
+    actions: np.ndarray  # (Tp, 7) base frame
+    start_index: int  # the action for the observation's own step
+    obs_stamp_ns: int
+    views_used: tuple[str, ...]
+    degraded: bool
+    degraded_reasons: tuple[str, ...]
+    timing: dict[str, float]
+    latency_s: float  # request to reply, measured here
+
+
+def _frame(image: Image, stamp_ns: int, quality: int) -> policy_pb2.Frame:
+    if isinstance(image, (bytes, bytearray)):
+        return policy_pb2.Frame(jpeg=bytes(image), stamp_ns=stamp_ns)
+    arr = np.asarray(image)
+    if arr.dtype != np.uint8 or arr.ndim != 3 or arr.shape[2] != 3:
+        raise ValueError(f"an image must be JPEG bytes or (H, W, 3) uint8 RGB, got {arr.dtype} {arr.shape}")
+    return (
+        policy_pb2.Frame(jpeg=encode_jpeg(arr, quality), stamp_ns=stamp_ns)
+        if quality
+        else policy_pb2.Frame(rgb=to_tensor(arr), stamp_ns=stamp_ns)
+    )
+
+
+class PolicyClient:
+    """One connection to a policy server. Thread-safe for one call at a time per session."""
+
+    def __init__(
+        self,
+        address: str,
+        *,
+        session_id: str = "robot",
+        token: str | None = None,
+        tls_ca: bytes | None = None,
+        timeout_s: float = 5.0,
+        connect_timeout_s: float = 30.0,
+        jpeg_quality: int = 90,
+        max_message_mb: int = 16,
+    ):
+        self.address = address
+        self.session_id = session_id
+        self.timeout_s = timeout_s
+        self.jpeg_quality = jpeg_quality  # raw numpy frames are sent as JPEG at this quality (0: raw RGB)
+        self._metadata = (("authorization", f"Bearer {token}"),) if token else None
+        size = max_message_mb << 20
+        options = [
+            ("grpc.max_receive_message_length", size),
+            ("grpc.max_send_message_length", size),
+            ("grpc.enable_retries", 0),
+        ]  # a late chunk is worthless: never retried blindly
+        self.channel = (
+            grpc.secure_channel(address, grpc.ssl_channel_credentials(tls_ca), options=options)
+            if tls_ca is not None
+            else grpc.insecure_channel(address, options=options)
+        )
+        self.stub = policy_pb2_grpc.PolicyStub(self.channel)
+        self._seq = 0
+        self._lock = threading.Lock()
+        self._reconnected = False
+        self._was_ready = False
+        self.info = self._connect(connect_timeout_s)
+        self.channel.subscribe(self._on_connectivity)
+
+    # -- connection ----------------------------------------------------------------------------
+    def _connect(self, timeout_s: float) -> policy_pb2.PolicyInfo:
+        """Retry until the server answers GetPolicyInfo (it may still be starting)."""
+        deadline = time.monotonic() + timeout_s
+        delay, last = 0.1, ""
+        while True:
+            try:
+                info = self.stub.GetPolicyInfo(
+                    policy_pb2.PolicyInfoRequest(),
+                    timeout=min(5.0, timeout_s),
+                    metadata=self._metadata,
+                    wait_for_ready=True,
+                )
+                break
+            except grpc.RpcError as exc:
+                if exc.code() in (grpc.StatusCode.UNAUTHENTICATED, grpc.StatusCode.PERMISSION_DENIED):
+                    raise PolicyError(f"{self.address}: {exc.details()}", exc.code()) from None
+                last = f"{exc.code().name}: {exc.details()}"
+            if time.monotonic() + delay > deadline:
+                raise PolicyError(
+                    f"no policy server at {self.address} after {timeout_s:.0f}s ({last})", grpc.StatusCode.UNAVAILABLE
+                )
+            time.sleep(delay)
+            delay = min(2 * delay, 1.0)
+        if info.proto_version != POLICY_PROTO_VERSION:
+            raise PolicyChanged(
+                f"{self.address} speaks policy protocol v{info.proto_version}, this client "
+                f"v{POLICY_PROTO_VERSION}: update one of them"
+            )
+        return info
+
+    def _on_connectivity(self, state: grpc.ChannelConnectivity) -> None:
+        if state == grpc.ChannelConnectivity.READY:
+            if self._was_ready:
+                self._reconnected = True  # checked before the next request
+            self._was_ready = True
+
+    def _check_after_reconnect(self) -> None:
+        if not self._reconnected:
+            return
+        self._reconnected = False
+        info = self._connect(self.timeout_s)
+        if info.checkpoint_sha256 != self.info.checkpoint_sha256:
+            raise PolicyChanged(
+                f"{self.address} now serves {info.model_id} ({info.checkpoint_sha256[:12]}), "
+                f"not {self.info.model_id} ({self.info.checkpoint_sha256[:12]})"
+            )
+
+    # -- calls ---------------------------------------------------------------------------------
+    def request(
+        self,
+        frames: Mapping[str, Sequence[tuple[Image, int]]],
+        states: Sequence[State],
+        views: Sequence[str] | None = None,
+        gamma: Mapping[str, float] | None = None,
+        seed: int | None = None,
+        unconditional: bool = False,
+    ) -> policy_pb2.ActionRequest:
+        """The ActionRequest for ``frames`` (camera -> To (image, stamp_ns), oldest first) and ``states``."""
+        with self._lock:
+            self._seq += 1
+            seq = self._seq
+        req = policy_pb2.ActionRequest(
+            session_id=self.session_id,
+            seq=seq,
+            views=list(views or []),
+            gamma=dict(gamma or {}),
+            unconditional=unconditional,
+        )
+        if seed is not None:
+            req.seed = seed
+        for name, items in frames.items():
+            cam = req.cameras.add(name=name)
+            for image, stamp in items:
+                cam.frames.append(_frame(image, int(stamp), self.jpeg_quality))
+        for s in states:
+            req.states.add(
+                stamp_ns=int(s.stamp_ns),
+                eef_pos=[float(v) for v in s.eef_pos],
+                eef_quat_wxyz=[float(v) for v in s.eef_quat_wxyz],
+                gripper=float(s.gripper),
+            )
+        return req
+
+    def call(self, req: policy_pb2.ActionRequest, timeout_s: float | None = None) -> ActionChunk:
+        self._check_after_reconnect()
+        t0 = time.perf_counter()
+        try:
+            reply = self.stub.GetAction(req, timeout=timeout_s or self.timeout_s, metadata=self._metadata)
+        except grpc.RpcError as exc:
+            raise PolicyError(f"GetAction seq {req.seq}: {exc.code().name}: {exc.details()}", exc.code()) from None
+        acts = np.array([[*a.dp, *a.drot, a.gripper] for a in reply.actions], dtype=np.float64).reshape(-1, 7)
+        t = reply.timing
+        return ActionChunk(
+            acts,
+            int(reply.start_index),
+            int(reply.obs_stamp_ns),
+            tuple(reply.views_used),
+            bool(reply.degraded),
+            tuple(reply.degraded_reasons),
+            {
+                "decode_ms": t.decode_ms,
+                "encode_ms": t.encode_ms,
+                "step_p50_ms": t.step_p50_ms,
+                "step_max_ms": t.step_max_ms,
+                "total_ms": t.total_ms,
+            },
+            time.perf_counter() - t0,
+        )
+
+    def get_action(self, frames, states, **kw) -> ActionChunk:
+        timeout = kw.pop("timeout_s", None)
+        return self.call(self.request(frames, states, **kw), timeout)
+
+    def reset(self, seed: int | None = None) -> bool:
+        req = policy_pb2.ResetRequest(session_id=self.session_id)
+        if seed is not None:
+            req.seed = seed
+        try:
+            return self.stub.Reset(req, timeout=self.timeout_s, metadata=self._metadata).existed
+        except grpc.RpcError as exc:
+            raise PolicyError(f"Reset: {exc.code().name}: {exc.details()}", exc.code()) from None
+
+    def close(self) -> None:
+        self.channel.unsubscribe(self._on_connectivity)
+        self.channel.close()
+
+    def __enter__(self) -> PolicyClient:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+# -- executing chunks at the control rate ---------------------------------------------------------
+
+
+@dataclass
+class RunnerStats:
+    requests: int = 0
+    failed: int = 0  # GetAction errors (the runner holds still and asks again)
+    degraded: int = 0  # answers with a view dropped
+    underruns: int = 0  # ticks with no action queued: held still
+    stale_dropped: int = 0  # actions whose tick passed while their request was in flight
+    latency_s: list[float] = field(default_factory=list)
+
+
+class ChunkRunner:
+    """Actions for each control tick from the policy's chunks, requested ahead of time.
+
+    ``act(tick, frames, state)`` is called once per tick with that tick's newest frame per camera
+    and state; it keeps the last To of each for the requests. A chunk answering the observation of
+    tick t holds the actions of ticks t, t+1, ... (``n_action_steps`` of them from
+    ``start_index``); when it arrives at tick t' the actions of ticks before t' are dropped.
+    """
+
+    def __init__(
+        self,
+        client: PolicyClient,
+        control_hz: float | None = None,
+        *,
+        blocking: bool = False,
+        n_action_steps: int | None = None,
+        views: Sequence[str] | None = None,
+        gamma: Mapping[str, float] | None = None,
+        seed: int | None = None,
+        margin_ticks: int = 1,
+        on_error=None,
+    ):
+        info = client.info
+        self.client = client
+        self.To = int(info.obs_horizon)
+        self.n_action_steps = int(n_action_steps or info.n_action_steps)
+        self.hz = float(control_hz or info.control_hz)
+        self.blocking = blocking
+        self.views = list(views) if views else None
+        self.gamma = dict(gamma) if gamma else None
+        self.seed = seed  # a base seed: request i of the episode uses seed + i (reproducible episodes)
+        self.margin_ticks = margin_ticks
+        self.on_error = on_error
+        self.stats = RunnerStats()
+        self.last_chunk: ActionChunk | None = None
+        self.reset()
+
+    def reset(self) -> None:
+        """A new episode: forget the history, the queue, a request in flight."""
+        self._frames: dict[str, deque] = {}
+        self._states: deque = deque(maxlen=self.To)
+        self._queue: dict[int, np.ndarray] = {}
+        self._pending: tuple[int, threading.Thread, list] | None = None  # (obs tick, thread, [result])
+        self._gripper = 0.0
+        self._requests = 0
+        self._latency = 0.0  # running estimate (s)
+
+    def _observe(self, frames: Mapping[str, tuple[Image, int]], state: State) -> None:
+        for name, item in frames.items():
+            q = self._frames.setdefault(name, deque(maxlen=self.To))
+            q.append(item)
+            while len(q) < self.To:  # episode start: repeat the first frame, as the training data pad
+                q.appendleft(q[0])
+        self._states.append(state)
+        while len(self._states) < self.To:
+            self._states.appendleft(self._states[0])
+
+    def _start(self, tick: int) -> None:
+        seed = None if self.seed is None else self.seed + self._requests
+        self._requests += 1
+        req = self.client.request(
+            {n: list(q) for n, q in self._frames.items()}, list(self._states), self.views, self.gamma, seed
+        )
+        box: list = []
+
+        def call() -> None:
+            try:
+                box.append(self.client.call(req))
+            except PolicyError as exc:
+                box.append(exc)
+
+        thread = threading.Thread(target=call, name="policy-request", daemon=True)
+        self._pending = (tick, thread, box)
+        self.stats.requests += 1
+        thread.start()
+
+    def _collect(self, tick: int, wait: bool) -> None:
+        if self._pending is None:
+            return
+        obs_tick, thread, box = self._pending
+        if wait:
+            thread.join()
+        if thread.is_alive():
+            return
+        self._pending = None
+        result = box[0]
+        if isinstance(result, PolicyError):
+            self.stats.failed += 1
+            if self.on_error is not None:
+                self.on_error(result)
+            return
+        chunk: ActionChunk = result
+        self.last_chunk = chunk
+        self.stats.latency_s.append(chunk.latency_s)
+        self.stats.degraded += chunk.degraded
+        self._latency = chunk.latency_s if self._latency == 0 else 0.7 * self._latency + 0.3 * chunk.latency_s
+        fresh = {}
+        for j in range(self.n_action_steps):
+            i = chunk.start_index + j
+            if i >= len(chunk.actions):
+                break
+            t = obs_tick + j
+            if t < tick:
+                self.stats.stale_dropped += 1  # its moment passed while the request was in flight
+                continue
+            fresh[t] = chunk.actions[i]
+        self._queue = fresh  # a newer chunk replaces what is left of the older one
+
+    def _lead_ticks(self) -> int:
+        return int(np.ceil(self._latency * self.hz)) + self.margin_ticks
+
+    def act(self, tick: int, frames: Mapping[str, tuple[Image, int]], state: State) -> tuple[np.ndarray, bool]:
+        """(7-vector action for ``tick``, True) or a hold and False when none is queued."""
+        self._observe(frames, state)
+        self._collect(tick, wait=False)
+        left = sum(1 for t in self._queue if t >= tick)
+        if self._pending is None and left <= (0 if self.blocking else self._lead_ticks()):
+            self._start(tick)
+            if self.blocking:
+                self._collect(tick, wait=True)
+        action = self._queue.pop(tick, None)
+        for t in [t for t in self._queue if t < tick]:
+            del self._queue[t]
+        if action is None:
+            self.stats.underruns += 1
+            return np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, self._gripper]), False
+        self._gripper = float(action[6])
+        return action, True

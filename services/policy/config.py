@@ -1,0 +1,55 @@
+"""Settings of the policy server and its workers (YAML section ``policy`` / ``worker``)."""
+
+from __future__ import annotations
+
+from pydantic import Field, model_validator
+
+from services.core.config import Frozen
+
+
+class TlsConfig(Frozen):
+    cert: str | None = None  # PEM certificate chain of this server
+    key: str | None = None  # its PEM private key
+    ca: str | None = None  # PEM CA to verify the workers' certificates with (fan-out over TLS)
+
+    @property
+    def enabled(self) -> bool:
+        return bool(self.cert and self.key)
+
+    @model_validator(mode="after")
+    def _pair(self) -> TlsConfig:
+        if bool(self.cert) != bool(self.key):
+            raise ValueError("tls needs both cert and key")
+        return self
+
+
+class WorkerConfig(Frozen):
+    checkpoint: str  # checkpoint folder or run directory (its latest checkpoint)
+    listen: str = "127.0.0.1:0"  # host:port; port 0 = the OS picks one (printed on the ready line)
+    device: str = "cpu"  # cpu, cuda, cuda:N
+    threads: int = Field(1, ge=1)  # intra-op threads of the model (1 measured fastest per worker on 2 cores)
+    max_batch: int = Field(64, ge=1)  # items at most in one forward pass
+    token: str | None = None  # bearer token callers must present (the server's)
+    tls: TlsConfig = TlsConfig()  # serve over TLS
+    max_message_mb: int = Field(16, ge=1)  # gRPC message size cap, both ways
+    log_level: str = "INFO"  # logging level of the process
+
+
+class ServerConfig(Frozen):
+    checkpoint: str  # checkpoint folder or run directory (its latest checkpoint)
+    listen: str = "127.0.0.1:50051"  # host:port; loopback unless you mean it (0.0.0.0 = every interface)
+    views: list[str] | None = None  # cameras composed when a request names none (default: the training views)
+    rig: str | None = None  # rig preset or YAML adding cameras the checkpoint was not trained on
+    task: str | None = None  # with rig: the task whose framing the rig takes (sim rigs frame per task)
+    workers: int = Field(0, ge=0)  # local worker processes to start (0 with no addresses: in-process)
+    worker: list[str] = Field(default_factory=list)  # addresses of running workers (host:port, or dns:///name:port)
+    in_process: bool = False  # compute every view in this process even when workers are given
+    device: str = "cpu"  # device of the in-process model and of local workers
+    threads: int = Field(1, ge=1)  # intra-op threads of each model
+    token: str | None = None  # bearer token: clients (and this server to its workers) present it
+    tls: TlsConfig = TlsConfig()  # serve over TLS
+    request_timeout_s: float = Field(5.0, gt=0)  # deadline of a GetAction whose call carries none
+    worker_ready_s: float = Field(120.0, gt=0)  # how long to wait for the first worker to be ready
+    max_sessions: int = Field(256, ge=1)  # robot sessions kept (idle ones are forgotten first)
+    max_message_mb: int = Field(16, ge=1)  # gRPC message size cap, both ways
+    log_level: str = "INFO"  # logging level of the process

@@ -1,0 +1,779 @@
+"""The policy server: ``Policy.GetAction`` over gRPC, composing views at every denoising step.
+
+    viewscale serve --checkpoint runs/lift --listen 127.0.0.1:50051 --views F,FL,FR --workers 3
+
+One ``grpc.aio`` server. A GetAction request is validated field by field (``observation.parse``:
+INVALID_ARGUMENT naming the field, before any torch call), its frames decoded and resized off the
+event loop, and then sampled with ``sample_composed``: the shared noisy chunk goes to every view
+at each DDIM step, the views' noise predictions come back, are composed
+(``services.policy.aggregation``) and one scheduler step is taken. Where the views are computed
+is a backend behind one interface:
+
+- ``LocalDenoiser``: a ModelEngine in this process, every view of a request in one forward pass;
+- ``RemoteDenoiser``: one ``DenoiseWorker.Denoise`` stream per view to worker processes (local
+  ones it started, given addresses, or one DNS name balanced round-robin over its replicas).
+  Each step has a deadline from the request's; a worker that is down, late or refusing is
+  dropped for the rest of the request (the reply says ``degraded`` and why) and rests in a
+  circuit breaker until its health check says SERVING again. No view left: UNAVAILABLE.
+
+Sessions (one per robot) keep their noise generator and scheduler; a newer request of a session
+cancels its older one (ABORTED). Health (NOT_SERVING until the model or the workers are ready)
+and reflection are served; an optional bearer token (interceptor, constant-time compare) and
+TLS protect the rest.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import copy
+import hmac
+import logging
+import statistics
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Protocol
+
+import grpc
+import numpy as np
+import torch
+from grpc_health.v1 import health_pb2, health_pb2_grpc
+
+from services.core.action_spaces import eef_chunk_to_base, from_space
+from services.core.geometry import quat_wxyz_to_matrix
+from services.core.rig import load_rig
+from services.core.robot_types import EefDelta, action_msg
+from services.core.tensors import from_tensor, to_tensor
+from services.pb import policy_pb2, policy_pb2_grpc
+from services.policy import POLICY_PROTO_VERSION
+from services.policy.aggregation import (
+    CompositionError,
+    check_orthogonal,
+    compose,
+    compose_with_unconditional,
+    relative_transforms,
+    to_view,
+    view_transform,
+)
+from services.policy.checkpoint import checkpoint_sha256, model_id, read_info
+from services.policy.model.diffusion import make_inference_scheduler
+from services.policy.model.policy import NoiseConfig
+from services.policy.observation import CameraSpec, InvalidRequest, Parsed, PolicySpec, model_inputs, parse
+from services.policy.worker import WORKER_SERVICE, ModelEngine, unconditional_cond
+
+log = logging.getLogger(__name__)
+
+POLICY_SERVICE = "viewscale.v1.Policy"
+DEFAULT_TIMEOUT_S = 5.0  # a GetAction without a deadline gets this one
+
+
+class Unavailable(RuntimeError):
+    """No view could be computed."""
+
+
+class Superseded(RuntimeError):
+    """A newer request of the same session (or a reset) took over: this one stops between steps."""
+
+
+# -- the composed sampler, for any backend ------------------------------------------------------
+
+
+class Denoiser(Protocol):
+    """Where the views of one request are computed."""
+
+    async def open(
+        self, inputs: dict[str, tuple[np.ndarray, np.ndarray]], unconditional: bool, deadline: float
+    ) -> None: ...
+
+    async def step(
+        self, k: int, xs: dict[str, np.ndarray], deadline: float
+    ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]: ...
+
+    @property
+    def alive(self) -> list[str]: ...
+
+    @property
+    def dropped(self) -> dict[str, str]: ...
+
+    async def close(self) -> None: ...
+
+
+@dataclass
+class SampleResult:
+    chunk: np.ndarray  # (Tp, 7) normalised, in the reference view's frame
+    reference: str
+    views_used: list[str]
+    dropped: dict[str, str]  # view -> why
+    step_ms: list[float] = field(default_factory=list)
+    encode_ms: float = 0.0
+
+
+async def sample_composed(
+    denoiser: Denoiser,
+    inputs: dict[str, tuple[np.ndarray, np.ndarray]],
+    spec: PolicySpec,
+    order: list[str],
+    gammas: dict[str, float],
+    scheduler,
+    x_T: np.ndarray,
+    deadline: float,
+    unconditional: bool = False,
+    superseded: Callable[[], str | None] = lambda: None,
+) -> SampleResult:
+    """The composed DDIM loop (module docstring of services.policy.aggregation), deadline in monotonic s."""
+    transforms = {
+        v: view_transform(spec.action_space, spec.cameras[v].R_ext if spec.action_space == "camera" else None)
+        for v in inputs
+    }
+    ref, G = relative_transforms(transforms, order)
+    t0 = time.perf_counter()
+    await denoiser.open(inputs, unconditional, deadline)
+    result = SampleResult(x_T, ref, [], {}, encode_ms=(time.perf_counter() - t0) * 1e3)
+    x = torch.from_numpy(x_T[None].astype(np.float32))  # (1, Tp, 7) in the reference view's frame
+    steps = scheduler.timesteps.tolist()
+    for i, k in enumerate(steps):
+        why = superseded()
+        if why:
+            raise Superseded(why)
+        if not denoiser.alive:
+            raise Unavailable("no view left: " + "; ".join(f"{v}: {w}" for v, w in denoiser.dropped.items()))
+        t = time.perf_counter()
+        remaining = deadline - time.monotonic()
+        step_deadline = time.monotonic() + remaining / (len(steps) - i)  # an equal share of what is left
+        xs = {v: to_view(x[0].numpy(), G[v]) for v in denoiser.alive}
+        eps, eps_u = await denoiser.step(int(k), xs, step_deadline)
+        if not eps:
+            raise Unavailable(
+                f"no view answered step {k}: " + "; ".join(f"{v}: {w}" for v, w in denoiser.dropped.items())
+            )
+        if unconditional:
+            e = compose_with_unconditional(eps, eps_u, G, {v: 1.0 for v in eps}, order)
+        else:
+            e = compose(eps, G, gammas, order)
+        x = scheduler.step(torch.from_numpy(np.asarray(e, dtype=np.float32)[None]), int(k), x).prev_sample
+        result.step_ms.append((time.perf_counter() - t) * 1e3)
+    result.chunk = x[0].numpy()
+    result.views_used = [v for v in order if v in denoiser.alive]
+    result.dropped = dict(denoiser.dropped)
+    return result
+
+
+class LocalDenoiser:
+    """Every view in this process, one batched forward pass per step (one ModelEngine)."""
+
+    def __init__(self, engine: ModelEngine):
+        self.engine = engine
+        self._cond: dict[str, np.ndarray] = {}
+        self._uncond = False
+
+    @property
+    def alive(self) -> list[str]:
+        return list(self._cond)
+
+    @property
+    def dropped(self) -> dict[str, str]:
+        return {}
+
+    async def open(self, inputs, unconditional, deadline) -> None:
+        futures = {v: self.engine.encode(frames, state) for v, (frames, state) in inputs.items()}  # one batch
+        self._cond = {v: await asyncio.wrap_future(f) for v, f in futures.items()}
+        self._uncond = unconditional
+
+    async def step(self, k, xs, deadline):
+        futures = {v: self.engine.step(self._cond[v], x, k) for v, x in xs.items()}  # one batch
+        uncond = (
+            {v: self.engine.step(unconditional_cond(self._cond[v]), x, k) for v, x in xs.items()}
+            if self._uncond
+            else {}
+        )
+        eps = {v: await asyncio.wrap_future(f) for v, f in futures.items()}
+        return eps, {v: await asyncio.wrap_future(f) for v, f in uncond.items()}
+
+    async def close(self) -> None:
+        pass
+
+
+# -- workers: addresses, health, circuit breaker ------------------------------------------------
+
+
+@dataclass
+class WorkerHandle:
+    address: str
+    channel: grpc.aio.Channel
+    stub: policy_pb2_grpc.DenoiseWorkerStub
+    healthy: bool = False  # admitted: health SERVING and the same checkpoint
+    reason: str = "not checked yet"
+    streams: int = 0  # open streams (for spreading views)
+
+
+class WorkerPool:
+    """The workers the server fans out to; a background task re-admits the ones that recover."""
+
+    def __init__(
+        self,
+        addresses: list[str],
+        sha256: str,
+        credentials: grpc.ChannelCredentials | None = None,
+        token: str | None = None,
+        check_period_s: float = 0.5,
+    ):
+        if not addresses:
+            raise ValueError("no worker addresses")
+        self.sha256 = sha256
+        self.check_period_s = check_period_s
+        self._metadata = (("authorization", f"Bearer {token}"),) if token else None
+        self.workers: list[WorkerHandle] = []
+        options = [
+            ("grpc.lb_policy_name", "round_robin"),
+            ("grpc.max_receive_message_length", 16 << 20),
+            ("grpc.max_send_message_length", 16 << 20),
+        ]
+        for addr in addresses:
+            ch = (
+                grpc.aio.secure_channel(addr, credentials, options=options)
+                if credentials
+                else grpc.aio.insecure_channel(addr, options=options)
+            )
+            self.workers.append(WorkerHandle(addr, ch, policy_pb2_grpc.DenoiseWorkerStub(ch)))
+        self._task: asyncio.Task | None = None
+        self._changed = asyncio.Event()
+
+    async def start(self) -> None:
+        await self.check_all()
+        self._task = asyncio.create_task(self._watch())
+
+    async def _watch(self) -> None:
+        while True:
+            await asyncio.sleep(self.check_period_s)
+            await self.check_all(only_unhealthy=True)
+
+    async def check(self, w: WorkerHandle) -> None:
+        try:
+            health = await health_pb2_grpc.HealthStub(w.channel).Check(
+                health_pb2.HealthCheckRequest(service=WORKER_SERVICE), timeout=1.0
+            )
+            if health.status != health_pb2.HealthCheckResponse.SERVING:
+                raise RuntimeError(f"health {health_pb2.HealthCheckResponse.ServingStatus.Name(health.status)}")
+            info = await w.stub.GetWorkerInfo(policy_pb2.WorkerInfoRequest(), timeout=1.0, metadata=self._metadata)
+            if info.checkpoint_sha256 != self.sha256:
+                raise RuntimeError(f"holds checkpoint {info.checkpoint_sha256[:12]}, not {self.sha256[:12]}")
+        except (grpc.aio.AioRpcError, RuntimeError) as exc:
+            reason = exc.details() if isinstance(exc, grpc.aio.AioRpcError) else str(exc)
+            if w.healthy:
+                log.warning("worker %s left: %s", w.address, reason)
+            w.healthy, w.reason = False, reason or "unreachable"
+            return
+        if not w.healthy:
+            log.info("worker %s admitted", w.address)
+            self._changed.set()
+        w.healthy, w.reason = True, ""
+
+    async def check_all(self, only_unhealthy: bool = False) -> None:
+        await asyncio.gather(*(self.check(w) for w in self.workers if not (only_unhealthy and w.healthy)))
+
+    def trip(self, w: WorkerHandle, reason: str) -> None:
+        """A failure in a request: out until its health check admits it again."""
+        if w.healthy:
+            log.warning("worker %s tripped: %s", w.address, reason)
+        w.healthy, w.reason = False, reason
+
+    @property
+    def healthy(self) -> list[WorkerHandle]:
+        return [w for w in self.workers if w.healthy]
+
+    def pick(self, exclude: set[str] = frozenset()) -> WorkerHandle | None:
+        """The healthy worker with the fewest open streams (ties: list order)."""
+        ok = [w for w in self.healthy if w.address not in exclude] or self.healthy
+        return min(ok, key=lambda w: w.streams) if ok else None
+
+    async def wait_ready(self, n: int, timeout: float) -> None:
+        deadline = time.monotonic() + timeout
+        while len(self.healthy) < n:
+            if time.monotonic() > deadline:
+                raise TimeoutError(
+                    f"{len(self.healthy)} of {n} workers ready after {timeout:.0f}s: "
+                    + "; ".join(f"{w.address}: {w.reason}" for w in self.workers if not w.healthy)
+                )
+            await self.check_all(only_unhealthy=True)
+            await asyncio.sleep(0.1)
+
+    async def close(self) -> None:
+        if self._task is not None:
+            self._task.cancel()
+        for w in self.workers:
+            await w.channel.close()
+
+
+class _Stream:
+    def __init__(self, worker: WorkerHandle, call):
+        self.worker = worker
+        self.call = call
+
+
+class RemoteDenoiser:
+    """One Denoise stream per view, to the pool's workers; a failure drops the view, never hangs."""
+
+    def __init__(self, pool: WorkerPool, spec: PolicySpec):
+        self.pool = pool
+        self.spec = spec
+        self._streams: dict[str, _Stream] = {}
+        self._dropped: dict[str, str] = {}
+
+    @property
+    def alive(self) -> list[str]:
+        return list(self._streams)
+
+    @property
+    def dropped(self) -> dict[str, str]:
+        return self._dropped
+
+    def _drop(self, view: str, reason: str, trip: bool = True) -> None:
+        s = self._streams.pop(view, None)
+        self._dropped[view] = reason
+        if s is not None:
+            s.worker.streams -= 1
+            if trip:
+                self.pool.trip(s.worker, reason)
+            s.call.cancel()
+
+    async def _call(self, view: str, req: policy_pb2.DenoiseRequest, deadline: float) -> policy_pb2.DenoiseReply | None:
+        s = self._streams[view]
+        try:
+            await asyncio.wait_for(s.call.write(req), timeout=max(0.0, deadline - time.monotonic()))
+            reply = await asyncio.wait_for(s.call.read(), timeout=max(0.0, deadline - time.monotonic()))
+        except asyncio.TimeoutError:
+            self._drop(view, f"worker {s.worker.address} late (step deadline)")
+            return None
+        except grpc.aio.AioRpcError as exc:
+            self._drop(view, f"worker {s.worker.address}: {exc.code().name} {exc.details()}")
+            return None
+        if reply is grpc.aio.EOF:
+            self._drop(view, f"worker {s.worker.address} closed the stream")
+            return None
+        return reply
+
+    async def open(self, inputs, unconditional, deadline) -> None:
+        used: set[str] = set()
+        for v in inputs:
+            w = self.pool.pick(exclude=used)
+            if w is None:
+                self._dropped[v] = "no healthy worker"
+                continue
+            used.add(w.address)
+            w.streams += 1
+            self._streams[v] = _Stream(w, w.stub.Denoise(metadata=self.pool._metadata))
+        reqs = {}
+        for v, (frames, state) in inputs.items():
+            if v in self._streams:
+                obs = policy_pb2.DenoiseObservation(
+                    checkpoint_sha256=self.pool.sha256, view=v, frames=to_tensor(frames), unconditional=unconditional
+                )
+                if state.shape[-1]:
+                    obs.state.CopyFrom(to_tensor(state))
+                reqs[v] = policy_pb2.DenoiseRequest(observation=obs)
+        await asyncio.gather(*(self._call(v, r, deadline) for v, r in reqs.items()))
+
+    async def step(self, k, xs, deadline):
+        views = [v for v in xs if v in self._streams]
+        reqs = {
+            v: policy_pb2.DenoiseRequest(step=policy_pb2.DenoiseStep(k=k, x=to_tensor(xs[v].astype(np.float32))))
+            for v in views
+        }
+        replies = await asyncio.gather(*(self._call(v, reqs[v], deadline) for v in views))
+        eps, eps_u = {}, {}
+        for v, r in zip(views, replies):
+            if r is None:
+                continue
+            eps[v] = from_tensor(r.eps)
+            if r.eps_uncond.shape:
+                eps_u[v] = from_tensor(r.eps_uncond)
+        return eps, eps_u
+
+    async def close(self) -> None:
+        for v in list(self._streams):
+            s = self._streams.pop(v)
+            s.worker.streams -= 1
+            await s.call.done_writing() if not s.call.done() else None
+            s.call.cancel()
+
+
+# -- the Policy service -------------------------------------------------------------------------
+
+
+@dataclass
+class Session:
+    generator: torch.Generator
+    scheduler: Any
+    last_seq: int = -1
+    running: int = 0  # requests of this session being computed
+    used: float = field(default_factory=time.monotonic)
+
+
+def chunk_to_base(chunk_n: np.ndarray, spec: PolicySpec, reference: str, eef_quat_wxyz: np.ndarray) -> np.ndarray:
+    """(Tp, 7) normalised chunk in the reference view's frame -> base-frame actions, unnormalised."""
+    a = spec.normalizer.unnormalize_action(chunk_n.astype(np.float64))
+    if spec.action_space == "camera":
+        a = from_space(a, "camera", R_ext=spec.cameras[reference].R_ext)
+    elif spec.action_space == "eef":
+        a = eef_chunk_to_base(a, quat_wxyz_to_matrix(eef_quat_wxyz))
+    return a
+
+
+class PolicyService(policy_pb2_grpc.PolicyServicer):
+    def __init__(
+        self,
+        spec: PolicySpec,
+        noise: NoiseConfig,
+        default_views: list[str],
+        max_sessions: int = 256,
+        request_timeout_s: float = DEFAULT_TIMEOUT_S,
+    ):
+        self.spec = spec
+        self.default_views = default_views
+        self.max_sessions = max_sessions
+        self.request_timeout_s = request_timeout_s
+        self.scheduler = make_inference_scheduler(noise)
+        self.backend: Any = None  # () -> Denoiser, set once the model or the workers are ready
+        self.sessions: dict[str, Session] = {}
+        self.requests = 0
+        self.degraded = 0
+        # Frames are decoded off the event loop; their decode is numpy/OpenCV, released from the GIL.
+        from concurrent.futures import ThreadPoolExecutor
+
+        self._cpu = ThreadPoolExecutor(max_workers=2, thread_name_prefix="decode")
+
+    def info(self) -> policy_pb2.PolicyInfo:
+        s = self.spec
+        out = policy_pb2.PolicyInfo(
+            proto_version=POLICY_PROTO_VERSION,
+            model_id=s.model_id,
+            checkpoint_sha256=s.sha256,
+            action_space=s.action_space,
+            state_frame=s.state_frame,
+            obs_horizon=s.To,
+            pred_horizon=s.Tp,
+            n_action_steps=s.n_action_steps,
+            control_hz=s.control_hz,
+            image_width=s.image_size[1],
+            image_height=s.image_size[0],
+            ddim_steps=len(self.scheduler.timesteps),
+            unconditional=s.unconditional,
+            default_views=self.default_views,
+        )
+        for name in s.camera_order:
+            c = s.cameras[name]
+            out.cameras.add(
+                name=name,
+                width=c.width,
+                height=c.height,
+                K=c.K.flatten().tolist(),
+                R_ext=c.R_ext.flatten().tolist(),
+                position=c.position.tolist(),
+                default_gamma=1.0 / len(self.default_views) if name in self.default_views else 0.0,
+            )
+        return out
+
+    async def GetPolicyInfo(self, request, context) -> policy_pb2.PolicyInfo:
+        return self.info()
+
+    async def Reset(self, request, context) -> policy_pb2.ResetReply:
+        existed = self.sessions.pop(request.session_id, None)  # a running request sees it is gone and stops
+        if request.HasField("seed"):
+            self._session(request.session_id).generator.manual_seed(int(request.seed))
+        return policy_pb2.ResetReply(existed=existed is not None)
+
+    def _session(self, sid: str) -> Session:
+        s = self.sessions.get(sid)
+        if s is None:
+            if len(self.sessions) >= self.max_sessions:  # forget the least recently used idle session
+                idle = [k for k, v in self.sessions.items() if not v.running]
+                if idle:
+                    del self.sessions[min(idle, key=lambda k: self.sessions[k].used)]
+            g = torch.Generator()
+            g.seed()
+            s = self.sessions[sid] = Session(g, copy.deepcopy(self.scheduler))
+        s.used = time.monotonic()
+        return s
+
+    async def GetAction(self, request: policy_pb2.ActionRequest, context) -> policy_pb2.ActionReply:
+        recv_ns = time.time_ns()
+        t0 = time.perf_counter()
+        if self.backend is None:
+            await context.abort(grpc.StatusCode.UNAVAILABLE, "the model is still loading (health: NOT_SERVING)")
+        try:
+            parsed = parse(request, self.spec, self.default_views)
+        except InvalidRequest as exc:
+            await context.abort(grpc.StatusCode.INVALID_ARGUMENT, str(exc))
+        session = self._session(parsed.session_id)
+        if parsed.seq <= session.last_seq:
+            await context.abort(
+                grpc.StatusCode.ABORTED, f"seq {parsed.seq} is not newer than this session's last ({session.last_seq})"
+            )
+        session.last_seq = parsed.seq  # an older request still running stops at its next step
+
+        def superseded() -> str | None:
+            if self.sessions.get(parsed.session_id) is not session:
+                return "the session was reset"
+            if session.last_seq != parsed.seq:
+                return f"superseded by seq {session.last_seq}"  # a late chunk is worthless: the newer one wins
+            return None
+
+        remaining = context.time_remaining()
+        deadline = time.monotonic() + (remaining if remaining is not None else self.request_timeout_s)
+        session.running += 1
+        try:
+            return await self._act(parsed, session, deadline, recv_ns, t0, context, superseded)
+        finally:
+            session.running -= 1
+
+    async def _act(
+        self, parsed: Parsed, session: Session, deadline: float, recv_ns: int, t0: float, context, superseded
+    ) -> policy_pb2.ActionReply:
+        loop = asyncio.get_running_loop()
+        try:
+            inputs = await loop.run_in_executor(self._cpu, model_inputs, parsed, self.spec)
+        except InvalidRequest as exc:
+            await context.abort(grpc.StatusCode.INVALID_ARGUMENT, str(exc))
+        decode_ms = (time.perf_counter() - t0) * 1e3
+        gen = torch.Generator().manual_seed(parsed.seed) if parsed.seed is not None else session.generator
+        x_T = torch.randn((self.spec.Tp, 7), generator=gen).numpy()
+        denoiser = self.backend()
+        try:
+            result = await sample_composed(
+                denoiser,
+                inputs,
+                self.spec,
+                parsed.views,
+                parsed.gamma,
+                session.scheduler,
+                x_T,
+                deadline,
+                parsed.unconditional,
+                superseded,
+            )
+        except Superseded as exc:
+            await context.abort(grpc.StatusCode.ABORTED, f"seq {parsed.seq}: {exc}")
+        except Unavailable as exc:
+            await context.abort(grpc.StatusCode.UNAVAILABLE, str(exc))
+        except CompositionError as exc:
+            await context.abort(grpc.StatusCode.INVALID_ARGUMENT, str(exc))
+        finally:
+            await denoiser.close()
+        actions = chunk_to_base(result.chunk, self.spec, result.reference, parsed.eef_quat_wxyz[-1])
+        self.requests += 1
+        self.degraded += bool(result.dropped)
+        reply = policy_pb2.ActionReply(
+            seq=parsed.seq,
+            start_index=self.spec.To - 1,
+            obs_stamp_ns=parsed.obs_stamp_ns,
+            views_used=result.views_used,
+            degraded=bool(result.dropped),
+            degraded_reasons=[f"{v}: {why}" for v, why in result.dropped.items()],
+        )
+        for row in actions:
+            reply.actions.append(action_msg(EefDelta(row[0:3], row[3:6], float(row[6]))))
+        steps = result.step_ms or [0.0]
+        reply.timing.CopyFrom(
+            policy_pb2.Timing(
+                decode_ms=decode_ms,
+                encode_ms=result.encode_ms,
+                step_p50_ms=statistics.median(steps),
+                step_max_ms=max(steps),
+                total_ms=(time.perf_counter() - t0) * 1e3,
+                server_receive_ns=recv_ns,
+                server_send_ns=time.time_ns(),
+            )
+        )
+        return reply
+
+
+# -- security: bearer token ---------------------------------------------------------------------
+
+
+class BearerTokenInterceptor(grpc.aio.ServerInterceptor):
+    """Every call but health and reflection needs ``authorization: Bearer <token>`` (constant-time compare)."""
+
+    OPEN = ("/grpc.health.v1.Health/", "/grpc.reflection.")
+
+    def __init__(self, token: str):
+        if not token:
+            raise ValueError("empty bearer token")
+        self._expected = f"Bearer {token}".encode()
+
+    async def intercept_service(self, continuation, details):
+        if details.method.startswith(self.OPEN):
+            return await continuation(details)
+        got = dict(details.invocation_metadata or ()).get("authorization", "")
+        if hmac.compare_digest(got.encode(), self._expected):
+            return await continuation(details)
+        handler = await continuation(details)
+
+        async def deny_unary(request, context):
+            await context.abort(grpc.StatusCode.UNAUTHENTICATED, "missing or wrong bearer token")
+
+        async def deny_stream(request_iterator, context):
+            await context.abort(grpc.StatusCode.UNAUTHENTICATED, "missing or wrong bearer token")
+            yield  # pragma: no cover  (makes this an async generator)
+
+        if handler is None:
+            return None
+        if handler.unary_unary:
+            return grpc.unary_unary_rpc_method_handler(
+                deny_unary, handler.request_deserializer, handler.response_serializer
+            )
+        return grpc.stream_stream_rpc_method_handler(
+            deny_stream, handler.request_deserializer, handler.response_serializer
+        )
+
+
+# -- the server process -------------------------------------------------------------------------
+
+
+class LocalWorkers:
+    """Worker processes on loopback, started before any gRPC object exists in this process (never
+    fork after gRPC is initialised); each one's address comes from its ready line."""
+
+    def __init__(self, cfg, n: int, log_dir: Path | None = None):
+        self.cfg = cfg
+        self.n = n
+        self.log_dir = log_dir
+        self.procs: list[Any] = []
+        self.addresses: list[str] = []
+
+    def __enter__(self) -> LocalWorkers:
+        import subprocess
+        import sys
+
+        for i in range(self.n):
+            cmd = [
+                sys.executable,
+                "-m",
+                "services.policy",
+                "worker",
+                "--checkpoint",
+                str(self.cfg.checkpoint),
+                "--listen",
+                "127.0.0.1:0",
+                "--device",
+                self.cfg.device,
+                "--threads",
+                str(self.cfg.threads),
+            ]
+            env = None
+            if self.cfg.token:
+                import os
+
+                env = dict(os.environ, VIEWSCALE_TOKEN=self.cfg.token)  # not on the command line (ps shows it)
+            err = open(self.log_dir / f"worker-{i}.log", "a") if self.log_dir else None
+            self.procs.append(
+                subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=err or subprocess.DEVNULL, text=True, env=env)
+            )
+            if err:
+                err.close()
+        try:
+            for i, p in enumerate(self.procs):
+                for line in p.stdout:  # "listening worker ..." then "ready worker <addr>"
+                    if line.startswith("listening worker "):
+                        self.addresses.append(line.split()[2])
+                        break
+                else:
+                    raise RuntimeError(f"worker {i} exited with code {p.wait()} before listening")
+        except BaseException:
+            self.__exit__()
+            raise
+        return self
+
+    def __exit__(self, *exc) -> None:
+        for p in self.procs:
+            if p.poll() is None:
+                p.terminate()
+        for p in self.procs:
+            try:
+                p.wait(timeout=10)
+            except Exception:
+                p.kill()
+                p.wait()
+            if p.stdout:
+                p.stdout.close()
+
+
+def rig_cameras(rig: str, task: str | None, width: int, height: int) -> dict[str, CameraSpec]:
+    """Cameras of a rig file, calibrated at the checkpoint's frame size."""
+    r = load_rig(rig)
+    if task is not None and hasattr(r, "for_task"):
+        r = r.for_task(task)
+    return {n: CameraSpec(n, width, height, c.K(width, height), c.R_ext, c.position) for n, c in r.cameras.items()}
+
+
+def load_spec(cfg) -> tuple[PolicySpec, NoiseConfig, dict[str, Any]]:
+    """The checkpoint's PolicySpec (plus the rig's extra cameras) and its noise config; no weights."""
+    info = read_info(cfg.checkpoint)
+    sha = checkpoint_sha256(cfg.checkpoint)
+    extra = {}
+    if cfg.rig:
+        cal = next((c for c in (info.get("calibration") or {}).values() if c), None)
+        w, h = (
+            (int(cal["source_width"]), int(cal["source_height"])) if cal else tuple(info["model"]["image_size"][::-1])
+        )
+        extra = rig_cameras(cfg.rig, cfg.task, w, h)
+    spec = PolicySpec.from_info(info, sha, model_id(cfg.checkpoint), extra)
+    views = list(cfg.views or spec.train_views)
+    unknown = [v for v in views if v not in spec.cameras]
+    if unknown:
+        raise ValueError(
+            f"views: no calibration for {', '.join(unknown)} (the checkpoint knows "
+            f"{', '.join(spec.camera_order)}; add a rig with --rig)"
+        )
+    transforms = {v: view_transform(spec.action_space, spec.cameras[v].R_ext) for v in spec.cameras}
+    check_orthogonal(spec.normalizer, transforms)  # refuse a checkpoint whose views cannot be composed
+    return spec, NoiseConfig.model_validate(info["model"]["noise"]), info
+
+
+async def serve_policy(cfg, stop: asyncio.Event, worker_addresses: list[str], announce=print) -> int:
+    """Run the Policy server until ``stop``: listen (NOT_SERVING), get the model or the workers ready, SERVING."""
+    from services.policy.worker import add_health_and_reflection, server_credentials, set_serving
+
+    spec, noise, _ = load_spec(cfg)
+    views = list(cfg.views or spec.train_views)
+    service = PolicyService(spec, noise, views, cfg.max_sessions, cfg.request_timeout_s)
+    interceptors = [BearerTokenInterceptor(cfg.token)] if cfg.token else []
+    size = cfg.max_message_mb << 20
+    server = grpc.aio.server(
+        interceptors=interceptors,
+        options=[("grpc.max_receive_message_length", size), ("grpc.max_send_message_length", size)],
+    )
+    policy_pb2_grpc.add_PolicyServicer_to_server(service, server)
+    health = add_health_and_reflection(server, [POLICY_SERVICE])
+    await set_serving(health, [POLICY_SERVICE], False)
+    creds = server_credentials(cfg.tls)
+    port = server.add_secure_port(cfg.listen, creds) if creds else server.add_insecure_port(cfg.listen)
+    address = f"{cfg.listen.rsplit(':', 1)[0]}:{port}"
+    await server.start()
+    announce(f"listening policy {address}")
+    loop = asyncio.get_running_loop()
+    engine = pool = None
+    if cfg.in_process or not worker_addresses:
+        engine = await loop.run_in_executor(None, ModelEngine.open, cfg.checkpoint, cfg.device, cfg.threads)
+        service.backend = lambda: LocalDenoiser(engine)
+        mode = "in-process"
+    else:
+        creds_out = None
+        if cfg.tls.ca:
+            creds_out = grpc.ssl_channel_credentials(root_certificates=Path(cfg.tls.ca).read_bytes())
+        pool = WorkerPool(worker_addresses, spec.sha256, creds_out, cfg.token)
+        await pool.start()
+        await pool.wait_ready(1, cfg.worker_ready_s)
+        service.backend = lambda: RemoteDenoiser(pool, spec)
+        mode = f"{len(worker_addresses)} workers"
+    await set_serving(health, [POLICY_SERVICE], True)
+    log.info("policy %s on %s: %s, views %s, %s", spec.model_id, address, spec.action_space, ",".join(views), mode)
+    announce(f"ready policy {address}")
+    await stop.wait()
+    await set_serving(health, [POLICY_SERVICE], False)
+    await server.stop(grace=2.0)
+    if pool is not None:
+        await pool.close()
+    if engine is not None:
+        engine.close()
+    return 0
