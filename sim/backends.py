@@ -91,13 +91,13 @@ class ScriptedTeleop(TeleopDriver):
         self._expert = None
         self._task = ""
 
-    def reset(self, task: str) -> None:
+    def reset(self, task: str, episode_id: str = "") -> None:
         if task != self._task or self._expert is None:
             self._expert = make_expert(task)
             self._task = task
         self._expert.reset()
 
-    def act(self, state: RobotState, task: TaskState | None) -> EefDelta:
+    def act(self, state: RobotState, task: TaskState | None, frames=None) -> EefDelta:
         if task is None:
             raise ValueError("the scripted expert needs the task state of the same tick")
         if self._expert is None or task.task != self._task:

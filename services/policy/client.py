@@ -79,7 +79,8 @@ def _frame(image: Image, stamp_ns: int, quality: int) -> policy_pb2.Frame:
 
 
 class PolicyClient:
-    """One connection to a policy server. Thread-safe for one call at a time per session."""
+    """One connection to a policy server, one session (``session_id``: one robot), reset on connect.
+    Thread-safe for one call at a time per session."""
 
     def __init__(
         self,
@@ -115,6 +116,7 @@ class PolicyClient:
         self._reconnected = False
         self._was_ready = False
         self.info = self._connect(connect_timeout_s)
+        self.reset()  # a fresh session: a client restarted under the same id starts its seq again at 1
         self.channel.subscribe(self._on_connectivity)
 
     # -- connection ----------------------------------------------------------------------------

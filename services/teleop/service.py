@@ -1,8 +1,11 @@
 """The teleop service: answers every RobotState tick with an EefCommand for the same tick.
 
 The zenoh callbacks only store the newest state (a teleop that falls behind skips to the
-present rather than answering old ticks) and the task states by tick; a worker thread does the
-thinking. Malformed payloads are counted and logged, never fatal.
+present rather than answering old ticks), the task states by tick, and the last frames of the
+cameras the driver looks at; a worker thread does the thinking. A driver gets, with each state,
+each of its cameras' newest frame captured at or before the state (waiting up to
+``frame_wait_s`` for one that new: the sim publishes a tick's frames just before its state).
+Malformed payloads are counted and logged, never fatal.
 """
 
 from __future__ import annotations
@@ -10,7 +13,9 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections import Counter, OrderedDict
+from collections import Counter, OrderedDict, deque
+
+from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 
 from services.core import topics
 from services.core.bus import Bus, Received
@@ -20,7 +25,7 @@ from services.core.runtime import serve
 from services.pb.common_pb2 import Header
 from services.pb.control_pb2 import EefCommand
 from services.pb.sensors_pb2 import RobotState, TaskState
-from services.teleop.base import TeleopDriver
+from services.teleop.base import CameraFrame, TeleopDriver
 from services.teleop.config import TELEOP_DRIVERS, TeleopConfig
 
 log = logging.getLogger(__name__)
@@ -47,6 +52,9 @@ class TeleopService:
         bus.subscribe(topics.ROBOT_STATE, self._on_state, on_error=self._on_malformed)
         if driver.needs_task_state:
             bus.subscribe(topics.TASK_STATE, self._on_task, on_error=self._on_malformed)
+        self._frames: dict[str, deque[CameraFrame]] = {c: deque(maxlen=8) for c in driver.cameras}
+        for cam in driver.cameras:
+            bus.subscribe(topics.camera_image(cam), self._on_frame, on_error=self._on_malformed)
 
     def __enter__(self) -> TeleopService:
         self.bus.announce("teleop")
@@ -83,35 +91,60 @@ class TeleopService:
                 self._tasks.popitem(last=False)
             self._cv.notify_all()
 
-    def _next(self, stop: threading.Event) -> tuple[RobotState, TaskState | None] | None:
+    def _on_frame(self, msg: CompressedImage, rx: Received) -> None:
+        name = rx.key.split("/")[1]
+        if name not in self._frames or not msg.data:
+            return
+        with self._cv:
+            self._frames[name].append(CameraFrame(bytes(msg.data), msg.timestamp.ToNanoseconds()))
+            self._cv.notify_all()
+
+    def _frames_for(self, stamp_ns: int) -> dict[str, CameraFrame]:
+        """Each camera's newest frame at or before ``stamp_ns`` (its newest at all if none is that old)."""
+        out = {}
+        for name, q in self._frames.items():
+            older = [f for f in q if f.stamp_ns <= stamp_ns]
+            if older or q:
+                out[name] = older[-1] if older else q[0]
+        return out
+
+    def _next(self, stop: threading.Event) -> tuple[RobotState, TaskState | None, dict[str, CameraFrame]] | None:
         with self._cv:
             while self._state is None:
                 if stop.is_set():
                     return None
                 self._cv.wait(0.1)
             state, self._state = self._state, None
-            if not self.driver.needs_task_state:
-                return state, None
+            stamp = state.header.stamp_ns
+            deadline = time.monotonic() + max(self.cfg.task_state_wait_s, self.cfg.frame_wait_s)
             key = (state.episode_id, state.tick)
-            deadline = time.monotonic() + self.cfg.task_state_wait_s
-            while key not in self._tasks and (remaining := deadline - time.monotonic()) > 0:
+
+            def ready() -> bool:
+                if self.driver.needs_task_state and key not in self._tasks:
+                    return False
+                return all(q and q[-1].stamp_ns >= stamp for q in self._frames.values())
+
+            while not ready() and (remaining := deadline - time.monotonic()) > 0:
                 self._cv.wait(remaining)
-            return state, self._tasks.get(key)
+            return state, self._tasks.get(key), self._frames_for(stamp)
 
     def run(self, stop: threading.Event) -> None:
         while not stop.is_set():
             item = self._next(stop)
             if item is None:
                 break
-            state, task = item
-            if state.episode_id != self._episode:
-                self._episode = state.episode_id
-                self.driver.reset(task.task if task is not None else "")
+            state, task, frames = item
             try:
-                delta = self.driver.act(state, task)
+                if state.episode_id != self._episode:
+                    self.driver.reset(task.task if task is not None else "", state.episode_id)
+                    self._episode = state.episode_id  # once the reset worked: a failed one is tried again
+                missing = [c for c in self.driver.cameras if c not in frames]
+                if missing:
+                    raise ValueError(f"no frame from camera {', '.join(missing)} yet")
+                delta = self.driver.act(state, task, frames)
             except Exception as exc:  # no command: the robot holds still and flags the tick stale
                 self.errors += 1
-                log.warning("teleop source failed at tick %d: %s", state.tick, exc)
+                log.warning("teleop driver failed at tick %d of %s: %s", state.tick, state.episode_id, exc)
                 continue
             self._seq += 1
             self._pub.put(
