@@ -1,0 +1,218 @@
+"""GetAction latency through the real policy server: in-process against fan-out to workers.
+
+    python bench/serving.py                                  # tiny: V = 1, 3, 5; 1/4/8 clients
+    python bench/serving.py --presets tiny,paper --paper-requests 3
+    python bench/serving.py --presets paper --device cuda     # on a GPU
+
+Records two scripted lift episodes with the five15 rig, builds a camera-space dataset, and makes
+a checkpoint per preset (one training step: latency does not depend on the weights; DDIM 10).
+For each preset it starts two servers on loopback -- one computing every view in-process, one
+fanning out to five worker processes (one intra-op thread each) -- and then, in interleaved
+rounds so that the machine's load hits both alike, has 1, 4 or 8 client threads call GetAction
+composing the first V of F, FL, FR, FU, FD. Reports per (backend, V, clients) the client-measured
+p50/p99 latency and the server's p50 step time, and the two targets: the fan-out's extra time
+per denoising step over in-process, and V=3 composed against V=1 (both in-process).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import threading
+from pathlib import Path
+
+os.environ.setdefault("MUJOCO_GL", "egl")
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from bench.common import report  # noqa: E402
+
+VIEWS = ["F", "FL", "FR", "FU", "FD"]
+
+
+def make_dataset(root: Path, size: int) -> Path:
+    from services.cli import main as viewscale
+
+    raw, ds = root / "raw", root / "ds"
+    collect = ["collect", "--task", "lift", "--episodes", "2", "--rig", "five15", "--out", str(raw)]
+    if viewscale([*collect, "--size", str(size), "--fast"]) != 0:
+        raise SystemExit("collect failed")
+    build = ["dataset", "build", "--raw", str(raw), "--views", ",".join(VIEWS), "--out", str(ds)]
+    if viewscale([*build, "--image-size", f"{size}x{size}", "--contact-episodes", "0"]) != 0:
+        raise SystemExit("dataset build failed")
+    return ds
+
+
+def make_checkpoint(ds: Path, out: Path, preset: str, device: str) -> Path:
+    from services.trainer.config import train_config_from_dict
+    from services.trainer.train import train
+
+    cfg = {
+        "preset": preset,
+        "data": str(ds),
+        "out": str(out),
+        "steps": 1,
+        "batch_size": 2,
+        "num_workers": 0,
+        "progress": False,
+        "val_every": 0,
+        "checkpoint_every": 0,
+        "validation": False,
+        "device": device,
+        "model": {"noise": {"num_inference_steps": 10}},
+    }
+    train(train_config_from_dict(cfg))
+    return out
+
+
+def start(args: list[str], kind: str) -> tuple[subprocess.Popen, str]:
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "services.policy", *args],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.DEVNULL,
+        text=True,
+    )
+    for line in proc.stdout:
+        if line.startswith(f"ready {kind} "):
+            return proc, line.split()[2]
+    raise SystemExit(f"{kind} did not start: {args}")
+
+
+def observation(ds: Path):
+    from services.policy.client import State
+    from services.recorder.reader import read_episode
+
+    ep = read_episode(sorted((ds.parent / "raw").glob("*.mcap"))[0])
+    st = [r.msg for r in ep.messages("/robot/state")][4:6]
+    states = [State(list(s.eef_pos), list(s.eef_quat_wxyz), s.gripper, s.header.stamp_ns) for s in st]
+    frames = {c: [(r.msg.data, r.publish_time) for r in ep.messages(f"/camera/{c}/image")][4:6] for c in VIEWS}
+    return frames, states
+
+
+def run_round(addr: str, frames, states, views: list[str], clients: int, requests: int) -> list[tuple[float, float]]:
+    """(client latency s, server step p50 ms) of ``requests`` calls from each of ``clients`` threads."""
+    from services.policy.client import PolicyClient
+
+    out: list[tuple[float, float]] = []
+    lock = threading.Lock()
+
+    def one(i: int) -> None:
+        with PolicyClient(addr, session_id=f"bench-{i}", timeout_s=600.0) as c:
+            for _ in range(requests):
+                chunk = c.get_action({v: frames[v] for v in views}, states, views=views)
+                with lock:
+                    out.append((chunk.latency_s, chunk.timing["step_p50_ms"]))
+
+    threads = [threading.Thread(target=one, args=(i,)) for i in range(clients)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    return out
+
+
+def pct(xs: list[float], q: float) -> float:
+    xs = sorted(xs)
+    return xs[min(len(xs) - 1, round(q * (len(xs) - 1)))]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--presets", default="tiny")
+    ap.add_argument("--views", default="1,3,5", help="numbers of composed views")
+    ap.add_argument("--clients", default="1,4,8", help="numbers of concurrent clients")
+    ap.add_argument("--rounds", type=int, default=6, help="interleaved rounds per configuration")
+    ap.add_argument("--requests", type=int, default=3, help="requests per client per round")
+    ap.add_argument("--paper-requests", type=int, default=1, help="requests per client per round for paper presets")
+    ap.add_argument("--paper-clients", default="1", help="clients for paper presets")
+    ap.add_argument("--size", type=int, default=84)
+    ap.add_argument("--device", default="cpu")
+    args = ap.parse_args()
+
+    with tempfile.TemporaryDirectory(prefix="vs-serve-bench-") as tmp:
+        ds = make_dataset(Path(tmp), args.size)
+        frames, states = observation(ds)
+        rows = []
+        for preset in args.presets.split(","):
+            ckpt = make_checkpoint(ds, Path(tmp) / preset, preset, args.device)
+            paper = preset.startswith("paper")
+            clients_list = [int(c) for c in (args.paper_clients if paper else args.clients).split(",")]
+            requests = args.paper_requests if paper else args.requests
+            dev = ["--device", args.device]
+            workers = [start(["worker", "--checkpoint", str(ckpt), *dev], "worker") for _ in range(5)]
+            servers = {
+                "in-process": start(
+                    ["serve", "--checkpoint", str(ckpt), "--listen", "127.0.0.1:0", "--in-process", *dev], "policy"
+                ),
+                "fan-out": start(
+                    [
+                        "serve",
+                        "--checkpoint",
+                        str(ckpt),
+                        "--listen",
+                        "127.0.0.1:0",
+                        *sum((["--worker", a] for _, a in workers), []),
+                    ],
+                    "policy",
+                ),
+            }
+            try:
+                results: dict[tuple, list] = {}
+                for _, addr in servers.values():  # warm-up: first calls pay for allocations
+                    run_round(addr, frames, states, VIEWS, 1, 2)
+                for _ in range(args.rounds):
+                    for n_views in [int(v) for v in args.views.split(",")]:
+                        for clients in clients_list:
+                            for name, (_, addr) in servers.items():
+                                key = (name, n_views, clients)
+                                results.setdefault(key, []).extend(
+                                    run_round(addr, frames, states, VIEWS[:n_views], clients, requests)
+                                )
+                for (name, n_views, clients), got in sorted(results.items()):
+                    lat = [g[0] * 1e3 for g in got]
+                    rows.append(
+                        {
+                            "preset": preset,
+                            "backend": name,
+                            "views": n_views,
+                            "clients": clients,
+                            "n": len(lat),
+                            "p50_ms": round(pct(lat, 0.5), 2),
+                            "p99_ms": round(pct(lat, 0.99), 2),
+                            "step_p50_ms": round(statistics.median(g[1] for g in got), 3),
+                        }
+                    )
+            finally:
+                for proc, _ in [*servers.values(), *workers]:
+                    proc.terminate()
+                    proc.wait(timeout=30)
+
+    def row(preset, backend, views, clients):
+        return next(
+            (
+                r
+                for r in rows
+                if (r["preset"], r["backend"], r["views"], r["clients"]) == (preset, backend, views, clients)
+            ),
+            None,
+        )
+
+    targets = {}
+    for preset in args.presets.split(","):
+        for v in (1, 3, 5):
+            a, b = row(preset, "fan-out", v, 1), row(preset, "in-process", v, 1)
+            if a and b:
+                targets[f"{preset}_fanout_extra_ms_per_step_V{v}"] = round((a["p50_ms"] - b["p50_ms"]) / 10, 3)
+        one, three = row(preset, "in-process", 1, 1), row(preset, "in-process", 3, 1)
+        if one and three:
+            targets[f"{preset}_V3_over_V1_in_process"] = round(three["p50_ms"] / one["p50_ms"], 3)
+    report("serving", {"device": args.device, "ddim_steps": 10, "size": args.size, "targets": targets, "rows": rows})
+
+
+if __name__ == "__main__":
+    main()
