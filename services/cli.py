@@ -26,11 +26,18 @@ def _collect(args: argparse.Namespace) -> int:
     from services.core.config import ConfigError
     from services.core.rig import load_rig
     from services.session.collect import CollectError, collect
+    from services.session.config import EVAL_SEED_FLOOR
 
     try:
         load_rig(args.rig)  # fail fast on a typo, before starting anything
         if args.task not in ("lift", "can", "square"):
             raise ConfigError(f"unknown task {args.task!r}; tasks: lift, can, square")
+        last_seed = args.seed + 3 * args.episodes  # failed attempts move on to the next seed
+        if args.seed < 0 or last_seed >= EVAL_SEED_FLOOR:
+            raise ConfigError(
+                f"--seed: collection seeds stay below {EVAL_SEED_FLOOR} (seeds from there on are "
+                f"the evaluation's), got {args.seed} (with retries up to {last_seed})"
+            )
         extra: dict[str, list[str]] = {}
         for item in args.set:
             service, _, rest = item.partition(".")
@@ -64,6 +71,85 @@ def _collect(args: argparse.Namespace) -> int:
         )
         return 130
     return 0 if len(result.recorded) >= args.episodes else 1
+
+
+def _eval(args: argparse.Namespace) -> int:
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    from services.core.config import ConfigError
+    from services.policy.checkpoint import CheckpointError
+    from services.session.collect import CollectError
+    from services.session.evaluate import EvalError, EvalSpec, evaluate
+
+    views = [v.strip() for v in args.views.split(",") if v.strip()] if args.views else None
+    gamma = None
+    try:
+        if args.gamma:
+            gamma = {k: float(v) for k, v in (item.split("=", 1) for item in args.gamma.split(","))}
+        spec = EvalSpec(
+            task=args.task,
+            episodes=args.episodes,
+            checkpoint=args.checkpoint,
+            expert=args.expert,
+            views=views,
+            gamma=gamma,
+            workers=args.workers,
+            rig=args.rig,
+            size=args.size,
+            realtime=args.realtime,
+            seed=args.seed,
+            max_ticks=args.max_ticks,
+            video=args.video,
+            video_camera=args.video_camera,
+        )
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            signal.signal(sig, _interrupt)
+        result = evaluate(spec, Path(args.out))
+    except ValueError as exc:
+        print(f"error: --gamma must look like F=0.5,FL=0.25 ({exc})", file=sys.stderr)
+        return 2
+    except (EvalError, CollectError, ConfigError, CheckpointError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt as exc:
+        print(f"interrupted ({exc or 'SIGINT'}): services stopped; rollouts so far are in {args.out}", file=sys.stderr)
+        return 130
+    r = result.report
+    print(
+        f"{r['task']}: {r['successes']}/{r['episodes']} successful ({100 * r['success_rate']:.0f} %, "
+        f"Wilson 95% {100 * r['wilson95'][0]:.0f}-{100 * r['wilson95'][1]:.0f} %)"
+    )
+    if not r["expert"] and r["getaction_ms_p50"] is not None:
+        print(
+            f"GetAction p50 {r['getaction_ms_p50']:.1f} ms, p99 {r['getaction_ms_p99']:.1f} ms; "
+            f"underruns {r['underruns']}, degraded answers {r['degraded_answers']}"
+        )
+    print(f"report {result.out / 'report.md'}; rollouts {result.out / 'rollouts'}")
+    return 0
+
+
+def _rerender(args: argparse.Namespace) -> int:
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    from services.core.config import ConfigError
+    from services.dataset.store import DatasetError
+    from sim.rerender import rerender
+
+    try:
+        result = rerender(
+            [Path(p) for p in args.raw],
+            args.rig,
+            Path(args.out),
+            args.size,
+            progress=lambda m: print(m, file=sys.stderr, flush=True),
+        )
+    except (ConfigError, DatasetError, OSError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    done = result.written
+    print(f"re-rendered {len(done)} of {len(result.episodes)} episodes through {args.rig} -> {args.out}")
+    for e in result.episodes:
+        if e.error:
+            print(f"  skipped {e.source.name}: {e.error}")
+    return 0 if done and len(done) == len(result.episodes) else 1
 
 
 def _interrupt(signum, _frame):
@@ -157,6 +243,33 @@ def build_parser() -> argparse.ArgumentParser:
         help="override a service's config field, e.g. sim.jpeg_quality=80 (repeatable)",
     )
     p.set_defaults(func=_collect)
+
+    p = sub.add_parser(
+        "eval", help="closed-loop episodes of a trained policy (or the expert) through the real services"
+    )
+    p.add_argument("--checkpoint", help="checkpoint folder or run directory")
+    p.add_argument("--expert", action="store_true", help="the scripted expert instead, through the same path")
+    p.add_argument("--task", default="lift", help="lift, can or square (default lift)")
+    p.add_argument("--episodes", type=int, default=50, help="episodes to run (default 50)")
+    p.add_argument("--views", help="cameras to compose, e.g. F or F,FL,FR (default: the training views)")
+    p.add_argument("--gamma", help="composition weights, e.g. F=0.5,FL=0.25,FR=0.25 (default 1/V)")
+    p.add_argument("--workers", type=int, default=0, help="policy worker processes (default 0: in-process)")
+    p.add_argument("--rig", help="the sim's rig (default: the checkpoint's)")
+    p.add_argument("--size", type=int, help="frame size the sim renders (default: the checkpoint's)")
+    p.add_argument("--realtime", action="store_true", help="run at the control rate (default lockstep)")
+    p.add_argument("--seed", type=int, help="first seed (default: the task's fixed evaluation seeds)")
+    p.add_argument("--max-ticks", type=int, help="per-episode tick limit (default: the task's horizon)")
+    p.add_argument("--video", type=int, default=0, metavar="N", help="write MP4s of the first N episodes")
+    p.add_argument("--video-camera", help="camera of the videos (default: the first view)")
+    p.add_argument("--out", required=True, help="directory for the report, rollouts, logs and videos")
+    p.set_defaults(func=_eval)
+
+    p = sub.add_parser("rerender", help="replay recorded sim episodes through another camera rig (sim only)")
+    p.add_argument("--raw", nargs="+", required=True, help="directory of episode .mcap files, or files")
+    p.add_argument("--rig", required=True, help="rig preset or YAML to render through")
+    p.add_argument("--out", required=True, help="directory for the re-rendered episodes")
+    p.add_argument("--size", type=int, help="frame size (default: the recording's)")
+    p.set_defaults(func=_rerender)
 
     p = sub.add_parser("episode", help="start/stop/discard/status of the recorder's episode (hardware sessions)")
     p.add_argument("action", choices=["start", "stop", "discard", "status"])

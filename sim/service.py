@@ -36,6 +36,23 @@ from sim.world import TASKS, SimWorld
 log = logging.getLogger(__name__)
 
 
+def task_state_msg(world: SimWorld, tick: int, stamp_ns: int, seq: int, seed: int, episode_id: str) -> TaskState:
+    """The privileged task state of ``world`` now (object poses, success)."""
+    msg = TaskState(
+        header=Header(stamp_ns=stamp_ns, seq=seq, frame_id=topics.WORLD_FRAME),
+        tick=tick,
+        task=world.task,
+        seed=seed,
+        episode_id=episode_id,
+        success=bool(world.success()),
+    )
+    for name, pose in world.objects().items():
+        msg.objects.append(
+            ObjectPose(name=name, pos=[float(v) for v in pose.pos], quat_wxyz=[float(v) for v in pose.quat_wxyz])
+        )
+    return msg
+
+
 class SimService:
     def __init__(self, cfg: SimConfig, bus: Bus):
         self.cfg = cfg
@@ -84,19 +101,7 @@ class SimService:
     def _observe(self, tick: int, stamp_ns: int) -> None:
         self.cameras.publish_frames(self.camera.grab(stamp_ns))
         self._task_seq += 1
-        msg = TaskState(
-            header=Header(stamp_ns=stamp_ns, seq=self._task_seq, frame_id=topics.WORLD_FRAME),
-            tick=tick,
-            task=self.world.task,
-            seed=self.seed,
-            episode_id=self.loop.episode_id,
-            success=bool(self.world.success()),
-        )
-        for name, pose in self.world.objects().items():
-            msg.objects.append(
-                ObjectPose(name=name, pos=[float(v) for v in pose.pos], quat_wxyz=[float(v) for v in pose.quat_wxyz])
-            )
-        self._task_pub.put(msg)
+        self._task_pub.put(task_state_msg(self.world, tick, stamp_ns, self._task_seq, self.seed, self.loop.episode_id))
 
     # -- episode control ----------------------------------------------------------------
     def _on_control(self, payload: bytes) -> bytes:

@@ -117,3 +117,35 @@ def sim_dataset(tmp_path_factory) -> Path:
         == 0
     )
     return ds
+
+
+@pytest.fixture(scope="session")
+def tiny_checkpoint(sim_dataset, tmp_path_factory) -> Path:
+    """A tiny policy (few channels, 4 DDIM steps) trained 3 steps on ``sim_dataset``: real weights, real files."""
+    from services.trainer.config import train_config_from_dict
+    from services.trainer.train import train
+
+    out = tmp_path_factory.mktemp("tiny-policy") / "run"
+    model = {
+        "down_dims": [16, 32],
+        "diffusion_step_embed_dim": 16,
+        "noise": {"num_inference_steps": 4},
+        # width 8, not 4: at width 4 torch 2.15's CPU backward of this encoder corrupts the heap
+        # here (glibc aborts; seen in a plain training script too)
+        "encoder": {"width": 8, "num_keypoints": 4, "feature_dim": 8},
+    }
+    cfg = {
+        "preset": "tiny",
+        "data": str(sim_dataset),
+        "out": str(out),
+        "steps": 3,
+        "batch_size": 4,
+        "num_workers": 0,
+        "progress": False,
+        "val_every": 0,
+        "checkpoint_every": 0,
+        "validation": False,
+        "model": model,
+    }
+    train(train_config_from_dict(cfg))
+    return out

@@ -495,10 +495,12 @@ def _meta(params: BuildParams, episodes: list[dict[str, Any]], train: list[str],
     cameras, varies = _cameras(episodes, params.views)
     rates = sorted({float(e["info"]["meta"]["control_hz"]) for e in episodes if e["info"]["meta"].get("control_hz")})
     tasks = sorted({e["info"]["meta"]["task"] for e in episodes if e["info"]["meta"].get("task")})
+    rigs = sorted({e["info"]["meta"]["rig"] for e in episodes if e["info"]["meta"].get("rig")})
     return {
         "version": VERSION,
         "control_hz": rates[0] if len(rates) == 1 else None,  # None: the episodes disagree (or never said)
         "tasks": tasks,
+        "rigs": rigs,
         "action_space": params.space,
         "state_frame": params.state_frame,
         "action_dim": ACTION_DIM,

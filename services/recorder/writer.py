@@ -80,6 +80,8 @@ def meta_to_record(meta: EpisodeMeta) -> dict[str, str]:
     }
     for name in _MAP_FIELDS:
         record[name] = json.dumps(dict(sorted(getattr(meta, name).items())))
+    if meta.rerendered_from:  # only re-rendered episodes carry it
+        record["rerendered_from"] = meta.rerendered_from
     return record
 
 

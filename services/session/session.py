@@ -16,9 +16,12 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
+from pathlib import Path
 
 from services.core import topics
 from services.core.bus import Bus, Received
+from services.core.config import ConfigError
+from services.core.rig import load_rig
 from services.pb.episode_pb2 import (
     EpisodeCommand,
     EpisodeMeta,
@@ -38,6 +41,14 @@ class SessionError(RuntimeError):
     pass
 
 
+def rig_name(rig: str) -> str:
+    """A rig preset's name, or the name a rig file gives (its stem by default)."""
+    try:
+        return load_rig(rig).name
+    except ConfigError:  # not readable here (another host's path): its file name still names it
+        return Path(rig).stem
+
+
 @dataclass
 class Attempt:
     seed: int
@@ -45,7 +56,7 @@ class Attempt:
     success: bool
     ticks: int
     seconds: float
-    meta: EpisodeMeta | None = None  # set for recorded (successful) episodes
+    meta: EpisodeMeta | None = None  # set for recorded episodes (successful ones; every one in evaluation)
 
 
 @dataclass
@@ -64,6 +75,9 @@ class SessionResult:
 def describe(attempt: Attempt) -> str:
     if attempt.meta is None:
         return f"seed {attempt.seed}: expert failed after {attempt.ticks} ticks, discarded"
+    if not attempt.success:
+        m = attempt.meta
+        return f"seed {attempt.seed}: FAILED after {attempt.ticks} ticks ({attempt.seconds:.1f} s) -> {m.path}"
     m = attempt.meta
     drops = sum(m.drops.values())
     flags = f" FLAGGED: {'; '.join(m.flags)}" if m.flags else ""
@@ -78,6 +92,7 @@ class Session:
         self.cfg = cfg
         self.bus = bus
         self.progress = progress
+        self.rig = rig_name(cfg.rig)  # recorded with each episode and part of its id (a path would not do)
         self._cv = threading.Condition()
         self._episode = ""
         self._tick = -1
@@ -145,8 +160,11 @@ class Session:
                 self._cv.wait(min(remaining, 0.5))
 
     def run_episode(self, seed: int) -> Attempt:
-        stamp = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%S")
-        episode_id = f"{self.cfg.task}-{self.cfg.rig}-s{seed:05d}-{stamp}"
+        if self.cfg.evaluation:  # the same id for the same scene: runs compare file by file
+            episode_id = f"{self.cfg.task}-{self.rig}-eval-s{seed:06d}"
+        else:
+            stamp = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%S")
+            episode_id = f"{self.cfg.task}-{self.rig}-s{seed:05d}-{stamp}"
         self._watch(episode_id)
         t0 = time.monotonic()
         reset = self._sim(SimCommand.SIM_COMMAND_RESET, task=self.cfg.task, seed=seed, episode_id=episode_id)
@@ -155,7 +173,7 @@ class Session:
             episode_id=episode_id,
             task=self.cfg.task,
             seed=seed,
-            rig=self.cfg.rig,
+            rig=self.rig,
             control_hz=self.cfg.control_hz,
             lockstep=reset.lockstep,
         )
@@ -179,9 +197,9 @@ class Session:
             raise
         seconds = time.monotonic() - t0
         attempt = Attempt(seed, episode_id, paused.success, int(paused.ticks), seconds)
-        if paused.success:
+        if paused.success or self.cfg.evaluation:
             reply = self._recorder(
-                EpisodeCommand.EPISODE_COMMAND_STOP, episode_id=episode_id, success=True, ticks=paused.ticks
+                EpisodeCommand.EPISODE_COMMAND_STOP, episode_id=episode_id, success=paused.success, ticks=paused.ticks
             )
             attempt.meta = reply.meta
         else:
@@ -206,7 +224,7 @@ class Session:
         if cfg.warmup_ticks:
             self.warm_up()
         result = SessionResult()
-        max_attempts = cfg.max_attempts or 3 * cfg.episodes
+        max_attempts = cfg.episodes if cfg.evaluation else cfg.max_attempts or 3 * cfg.episodes
         seed = cfg.seed
         while len(result.recorded) < cfg.episodes:
             if len(result.attempts) >= max_attempts:
@@ -216,7 +234,10 @@ class Session:
                 )
             attempt = self.run_episode(seed)
             result.attempts.append(attempt)
-            self.progress(f"[{len(result.recorded)}/{cfg.episodes}] {cfg.task} {describe(attempt)}")
+            self.progress(
+                f"[{len(result.attempts if cfg.evaluation else result.recorded)}/{cfg.episodes}] "
+                f"{cfg.task} {describe(attempt)}"
+            )
             seed += 1
         return result
 

@@ -441,6 +441,7 @@ def train(
         "n_action_steps": model_cfg.n_action_steps,
         "control_hz": data.meta.get("control_hz"),
         "tasks": data.meta.get("tasks", []),
+        "rigs": data.meta.get("rigs", []),
         "dataset": {
             "path": data.source,
             "episodes": data.meta.get("train_episodes") or [e.get("id") for e in data.meta.get("episodes", [])],

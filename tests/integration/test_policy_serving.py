@@ -27,42 +27,14 @@ from services.policy.model import sample
 from services.policy.observation import model_inputs, parse
 from services.policy.server import load_spec
 from services.recorder.reader import read_episode
-from services.trainer.config import train_config_from_dict
-from services.trainer.train import train
 
 ROOT = Path(__file__).resolve().parents[2]
 torch.set_num_threads(1)
 
 
 @pytest.fixture(scope="module")
-def checkpoint(sim_dataset, tmp_path_factory) -> Path:
-    """A tiny policy (few channels, 4 DDIM steps) trained a few steps: real weights, real files."""
-    out = tmp_path_factory.mktemp("serve") / "run"
-    train(
-        train_config_from_dict(
-            {
-                "preset": "tiny",
-                "data": str(sim_dataset),
-                "out": str(out),
-                "steps": 3,
-                "batch_size": 4,
-                "num_workers": 0,
-                "progress": False,
-                "val_every": 0,
-                "checkpoint_every": 0,
-                "validation": False,
-                "model": {
-                    "down_dims": [16, 32],
-                    "diffusion_step_embed_dim": 16,
-                    "noise": {"num_inference_steps": 4},
-                    # width 8, not 4: at width 4 torch 2.15's CPU backward of this encoder corrupts
-                    # the heap here (glibc aborts; seen in a plain training script too)
-                    "encoder": {"width": 8, "num_keypoints": 4, "feature_dim": 8},
-                },
-            }
-        )
-    )
-    return out
+def checkpoint(tiny_checkpoint) -> Path:
+    return tiny_checkpoint
 
 
 @pytest.fixture(scope="module")

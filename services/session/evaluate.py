@@ -1,0 +1,361 @@
+"""``viewscale eval``: closed-loop episodes of a trained policy through the real services.
+
+    viewscale eval --checkpoint runs/lift --task lift --episodes 50 --views F --out runs/eval-lift-F
+    viewscale eval --checkpoint runs/lift --task lift --episodes 50 --views F,FL,FR --workers 3 --out ...
+    viewscale eval --expert --task lift --episodes 50 --out runs/eval-lift-expert      # the baseline row
+
+Starts the policy server (``viewscale serve``, in-process or with worker processes), then a
+session stack on loopback as ``viewscale collect`` does -- router, the sim (the checkpoint's rig
+and frame size), the recorder, and the teleop whose driver is the policy (``type: policy``: the
+robot-side client and its chunk runner) -- and runs an evaluation session: every episode is
+recorded to MCAP, success or failure, from seeds fixed per task and disjoint from every training
+seed (``EVAL_SEEDS``), so every row of a table starts from the same scenes. Lockstep by default
+(the sim waits for each command, so results do not depend on how loaded the machine is);
+``--realtime`` runs at the control rate, where latency shows as underruns.
+
+Writes ``report.json`` and ``report.md`` (success k/n with a Wilson 95% interval, episode lengths,
+GetAction latency p50/p99, underruns, stale actions, degraded answers, one row per episode), the
+rollouts under ``rollouts/``, service logs under ``logs/``, and with ``--video N`` MP4s of the
+first N episodes from one camera with the outcome marked.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import statistics
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+from services.core.bus import Bus
+from services.policy.checkpoint import read_info, resolve_checkpoint
+from services.session.collect import CollectError, LocalStack
+from services.session.config import DEFAULT_MAX_TICKS, EVAL_SEEDS, SessionConfig
+from services.session.session import Session, SessionError
+from services.session.video import write_video
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+class EvalError(RuntimeError):
+    """The evaluation could not run; the message says why."""
+
+
+def wilson(k: int, n: int, z: float = 1.96) -> tuple[float, float]:
+    """Wilson score interval of k successes in n trials (95 % by default)."""
+    if n == 0:
+        return 0.0, 1.0
+    p = k / n
+    denom = 1 + z * z / n
+    centre = (p + z * z / (2 * n)) / denom
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / denom
+    return max(0.0, centre - half), min(1.0, centre + half)
+
+
+def percentile(xs: list[float], q: float) -> float | None:
+    if not xs:
+        return None
+    xs = sorted(xs)
+    return xs[min(len(xs) - 1, int(math.ceil(q * len(xs))) - 1)] if q > 0 else xs[0]
+
+
+@dataclass
+class EvalSpec:
+    task: str
+    episodes: int = 50
+    checkpoint: str | None = None  # None with expert
+    expert: bool = False  # the scripted expert through the same path (the sanity row)
+    views: list[str] | None = None  # composed views (default: the checkpoint's training views)
+    gamma: dict[str, float] | None = None
+    workers: int = 0  # policy worker processes (0: in-process)
+    rig: str | None = None  # default: the checkpoint's
+    size: int | None = None  # frame size the sim renders (default: the checkpoint's cameras')
+    realtime: bool = False
+    seed: int | None = None  # first evaluation seed (default: EVAL_SEEDS[task])
+    max_ticks: int | None = None
+    video: int = 0  # MP4s of the first N episodes
+    video_camera: str | None = None  # default: the first view
+
+
+@dataclass
+class EvalResult:
+    report: dict[str, Any]
+    out: Path
+    rows: list[dict[str, Any]] = field(default_factory=list)
+
+
+def _checkpoint_facts(path: str) -> dict[str, Any]:
+    """What the evaluation needs from policy.json (without loading weights)."""
+    ck = resolve_checkpoint(path)
+    info = read_info(ck)
+    cal = next((c for c in (info.get("calibration") or {}).values() if c), None)
+    return {
+        "path": str(ck),
+        "rigs": info.get("rigs") or [],
+        "tasks": info.get("tasks") or [],
+        "views": info.get("views") or [],
+        "control_hz": info.get("control_hz") or 20.0,
+        "size": (int(cal["source_width"]), int(cal["source_height"])) if cal else None,
+    }
+
+
+class PolicyServer:
+    """``viewscale serve`` as a subprocess on a free loopback port; a context manager."""
+
+    def __init__(
+        self,
+        checkpoint: str,
+        log_dir: Path,
+        views: list[str] | None,
+        workers: int,
+        rig: str,
+        task: str,
+        ready_timeout_s: float = 300.0,
+    ):
+        cmd = [
+            sys.executable,
+            "-m",
+            "services.policy",
+            "serve",
+            "--checkpoint",
+            checkpoint,
+            "--listen",
+            "127.0.0.1:0",
+            "--rig",
+            rig,
+            "--task",
+            task,
+            "--log-dir",
+            str(log_dir),
+        ]
+        if views:
+            cmd += ["--views", ",".join(views)]
+        if workers:
+            cmd += ["--workers", str(workers)]
+        self.cmd = cmd
+        self.log_path = log_dir / "policy.log"
+        self.ready_timeout_s = ready_timeout_s
+        self.proc: subprocess.Popen | None = None
+        self.address = ""
+
+    def __enter__(self) -> PolicyServer:
+        self.log_path.parent.mkdir(parents=True, exist_ok=True)
+        with open(self.log_path, "a") as log:
+            self.proc = subprocess.Popen(self.cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=log, text=True)
+        deadline = time.monotonic() + self.ready_timeout_s
+        for line in self.proc.stdout:
+            if line.startswith("ready policy "):
+                self.address = line.split()[2]
+                return self
+            if time.monotonic() > deadline:
+                break
+        self.__exit__()
+        tail = "\n".join(self.log_path.read_text(errors="replace").splitlines()[-15:])
+        raise EvalError(f"the policy server did not start; last log lines:\n{tail}")
+
+    def __exit__(self, *exc) -> None:
+        if self.proc is not None and self.proc.poll() is None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        if self.proc is not None and self.proc.stdout:
+            self.proc.stdout.close()
+
+
+def _episode_rows(result, stats: dict[str, dict]) -> list[dict[str, Any]]:
+    rows = []
+    for a in result.attempts:
+        s = stats.get(a.episode_id, {})
+        lat = s.get("latency_ms", [])
+        rows.append(
+            {
+                "seed": a.seed,
+                "episode_id": a.episode_id,
+                "success": bool(a.success),
+                "ticks": a.ticks,
+                "seconds": round(a.seconds, 2),
+                "path": a.meta.path if a.meta is not None else "",
+                "flags": list(a.meta.flags) if a.meta is not None else [],
+                "requests": s.get("requests"),
+                "latency_p50_ms": percentile(lat, 0.5),
+                "underruns": s.get("underruns"),
+                "stale_dropped": s.get("stale_dropped"),
+                "degraded": s.get("degraded"),
+                "failed_requests": s.get("failed"),
+            }
+        )
+    return rows
+
+
+def summarise(
+    spec: EvalSpec, rows: list[dict[str, Any]], latencies: list[float], facts: dict | None, seconds: float
+) -> dict[str, Any]:
+    n = len(rows)
+    k = sum(r["success"] for r in rows)
+    lo, hi = wilson(k, n)
+    ok_ticks = [r["ticks"] for r in rows if r["success"]]
+
+    def total(key: str) -> int | None:
+        return None if spec.expert else sum(r[key] or 0 for r in rows)
+
+    return {
+        "task": spec.task,
+        "checkpoint": facts["path"] if facts else None,
+        "expert": spec.expert,
+        "views": spec.views,
+        "workers": spec.workers,
+        "realtime": spec.realtime,
+        "episodes": n,
+        "successes": k,
+        "success_rate": k / n if n else 0.0,
+        "wilson95": [round(lo, 4), round(hi, 4)],
+        "seeds": [rows[0]["seed"], rows[-1]["seed"]] if rows else [],
+        "ticks_success_mean": round(statistics.mean(ok_ticks), 1) if ok_ticks else None,
+        "ticks_all_mean": round(statistics.mean(r["ticks"] for r in rows), 1) if rows else None,
+        "getaction_ms_p50": percentile(latencies, 0.5),
+        "getaction_ms_p99": percentile(latencies, 0.99),
+        "requests": total("requests"),
+        "underruns": total("underruns"),
+        "stale_dropped": total("stale_dropped"),
+        "degraded_answers": total("degraded"),
+        "failed_requests": total("failed_requests"),
+        "wall_s": round(seconds, 1),
+    }
+
+
+def format_report(rep: dict[str, Any], rows: list[dict[str, Any]]) -> str:
+    who = "scripted expert" if rep["expert"] else f"{rep['checkpoint']} views {','.join(rep['views'] or [])}"
+    lines = [
+        f"# Evaluation: {rep['task']}, {who}",
+        "",
+        f"**{rep['successes']}/{rep['episodes']} successful** ({100 * rep['success_rate']:.0f} %, Wilson 95% "
+        f"{100 * rep['wilson95'][0]:.0f}-{100 * rep['wilson95'][1]:.0f} %), seeds {rep['seeds'][0]}.."
+        f"{rep['seeds'][-1]}, {'real time' if rep['realtime'] else 'lockstep'}, {rep['wall_s']:.0f} s.",
+        "",
+        f"- ticks: {rep['ticks_success_mean']} mean over the successes, {rep['ticks_all_mean']} over all",
+    ]
+    if not rep["expert"]:
+        lines += [
+            f"- GetAction: p50 {rep['getaction_ms_p50']:.1f} ms, p99 {rep['getaction_ms_p99']:.1f} ms over "
+            f"{rep['requests']} requests"
+            if rep["getaction_ms_p50"] is not None
+            else "- GetAction: no requests",
+            f"- underruns {rep['underruns']}, stale actions dropped {rep['stale_dropped']}, degraded answers "
+            f"{rep['degraded_answers']}, failed requests {rep['failed_requests']}",
+        ]
+    lines += ["", "| seed | outcome | ticks | requests | p50 ms | underruns | file |", "|---|---|---|---|---|---|---|"]
+    for r in rows:
+        p50 = f"{r['latency_p50_ms']:.1f}" if r["latency_p50_ms"] is not None else "-"
+        lines.append(
+            f"| {r['seed']} | {'success' if r['success'] else 'FAIL'} | {r['ticks']} | "
+            f"{r['requests'] if r['requests'] is not None else '-'} | {p50} | "
+            f"{r['underruns'] if r['underruns'] is not None else '-'} | {Path(r['path']).name} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def evaluate(spec: EvalSpec, out: Path, progress: Callable[[str], None] = print) -> EvalResult:
+    t0 = time.monotonic()
+    out = Path(out)
+    if spec.task not in DEFAULT_MAX_TICKS:
+        raise EvalError(f"unknown task {spec.task!r}; tasks: {', '.join(DEFAULT_MAX_TICKS)}")
+    if spec.episodes < 1:
+        raise EvalError(f"--episodes must be at least 1, got {spec.episodes}")
+    facts = None
+    if not spec.expert:
+        if not spec.checkpoint:
+            raise EvalError("--checkpoint is required (or --expert for the scripted baseline)")
+        facts = _checkpoint_facts(spec.checkpoint)
+        if facts["tasks"] and spec.task not in facts["tasks"]:
+            progress(f"note: {facts['path']} was trained on {', '.join(facts['tasks'])}, evaluated on {spec.task}")
+    rig = spec.rig or (facts["rigs"][0] if facts and len(facts["rigs"]) == 1 else None) or "five15"
+    size = spec.size or (facts["size"][0] if facts and facts["size"] else 84)
+    views = spec.views or (facts["views"] if facts else None)
+    rollouts = out / "rollouts"
+    if rollouts.exists() and any(rollouts.glob("*.mcap")):
+        raise EvalError(f"{rollouts} already holds rollouts: pick another --out (or remove it)")
+    out.mkdir(parents=True, exist_ok=True)
+    stats_file = out / "logs" / "policy_stats.jsonl"
+    stats_file.parent.mkdir(parents=True, exist_ok=True)
+    stats_file.unlink(missing_ok=True)
+
+    sim = [
+        f"rig={rig}",
+        f"task={spec.task}",
+        f"realtime={str(spec.realtime).lower()}",
+        f"width={size}",
+        f"height={size}",
+        "command_timeout_s=120",
+    ]
+    teleop: list[str] = []
+    seed0 = spec.seed if spec.seed is not None else EVAL_SEEDS[spec.task]
+    cfg_kw = dict(
+        task=spec.task,
+        rig=rig,
+        episodes=spec.episodes,
+        seed=seed0,
+        evaluation=True,
+        max_ticks=spec.max_ticks,
+        control_hz=facts["control_hz"] if facts else 20.0,
+    )
+
+    def run_session(server_address: str | None):
+        if server_address is not None:
+            teleop[:] = [
+                "driver.type=policy",
+                f"driver.server={server_address}",
+                f"driver.blocking={str(not spec.realtime).lower()}",
+                f"driver.stats_file={stats_file}",
+            ]
+            if views:
+                teleop.append("driver.views=[" + ",".join(views) + "]")
+            if spec.gamma:
+                teleop.append("driver.gamma={" + ",".join(f"{k}: {v}" for k, v in spec.gamma.items()) + "}")
+        overrides = {"sim": sim, "recorder": [f"out_dir={rollouts}"], "teleop": teleop}
+        who = "the scripted expert" if spec.expert else f"the policy ({', '.join(views or [])})"
+        progress(
+            f"evaluating {who} on {spec.task}: {spec.episodes} episodes from seed {seed0}, rig {rig}, "
+            f"{size}x{size}, {'real time' if spec.realtime else 'lockstep'}"
+        )
+        with LocalStack(out, None, overrides) as stack:
+            progress(f"services ready on {stack.endpoint}; logs in {stack.log_dir}")
+            cfg = SessionConfig(bus=stack.bus_config(), **cfg_kw)
+            with Bus(cfg.bus) as bus:
+                try:
+                    return Session(cfg, bus, progress=progress).run()
+                except (SessionError, TimeoutError) as exc:
+                    stack.check_alive()
+                    raise CollectError(str(exc)) from exc
+
+    if spec.expert:
+        result = run_session(None)
+    else:
+        with PolicyServer(facts["path"], out / "logs", views, spec.workers, rig, spec.task) as server:
+            progress(f"policy server ready on {server.address} ({spec.workers or 'no'} workers)")
+            result = run_session(server.address)
+
+    stats = {}
+    if stats_file.is_file():
+        for line in stats_file.read_text().splitlines():
+            row = json.loads(line)
+            stats[row["episode_id"]] = row
+    rows = _episode_rows(result, stats)
+    latencies = [x for s in stats.values() for x in s["latency_ms"]]
+    rep = summarise(replace(spec, views=views), rows, latencies, facts, time.monotonic() - t0)
+    rep["rig"], rep["size"] = rig, size
+    (out / "report.json").write_text(json.dumps({"summary": rep, "episodes": rows}, indent=2) + "\n")
+    (out / "report.md").write_text(format_report(rep, rows))
+    if spec.video:
+        cam = spec.video_camera or (views[0] if views else "F")
+        for r in rows[: spec.video]:
+            path = write_video(Path(r["path"]), cam, out / "videos" / f"{Path(r['path']).stem}.mp4", r["success"])
+            progress(f"video {path}")
+    return EvalResult(rep, out, rows)

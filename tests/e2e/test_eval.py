@@ -1,0 +1,122 @@
+"""The whole chain through real processes, tiny settings: recorded sim episodes (the session's
+dataset), a tiny trained policy, `viewscale eval` driving the sim through the policy server, the
+scripted-expert row through the same path, and `viewscale rerender`."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from services.core.tensors import decode_jpeg
+from services.dataset.build import BuildParams, build_dataset
+from services.dataset.store import DatasetStore
+from services.recorder.reader import read_episode
+from services.session.config import EVAL_SEEDS
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def viewscale(*args: str, timeout: float = 600) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "services.cli", *args], cwd=ROOT, capture_output=True, text=True, timeout=timeout
+    )
+
+
+def test_eval_drives_the_sim_through_the_policy_server_and_records_every_rollout(tiny_checkpoint, tmp_path):
+    out = tmp_path / "eval"
+    proc = viewscale(
+        "eval",
+        "--checkpoint",
+        str(tiny_checkpoint),
+        "--task",
+        "lift",
+        "--episodes",
+        "2",
+        "--views",
+        "F,FL",
+        "--workers",
+        "2",
+        "--max-ticks",
+        "20",
+        "--video",
+        "1",
+        "--out",
+        str(out),
+    )
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    assert "lift: " in proc.stdout and "report " in proc.stdout
+    report = json.loads((out / "report.json").read_text())
+    s, rows = report["summary"], report["episodes"]
+    assert s["episodes"] == 2 and len(rows) == 2 and s["views"] == ["F", "FL"] and s["workers"] == 2
+    assert [r["seed"] for r in rows] == [EVAL_SEEDS["lift"], EVAL_SEEDS["lift"] + 1]  # fixed, disjoint seeds
+    assert 0 <= s["wilson95"][0] <= s["success_rate"] <= s["wilson95"][1] <= 1
+    assert s["requests"] >= 2 * 3 and s["getaction_ms_p50"] > 0 and s["underruns"] == 0  # lockstep: no underrun
+    for r in rows:
+        ep = read_episode(r["path"])  # every rollout, success or failure, is a readable episode
+        assert ep.metadata["ticks"] == r["ticks"] == 20 or r["success"]
+        assert ep.metadata["lockstep"] is True and "-eval-s" in ep.metadata["episode_id"]
+        commands = ep.messages("/teleop/command")
+        assert commands and {c.msg.source for c in commands} == {"policy"}
+        assert len(ep.messages("/robot/applied")) == r["ticks"]
+        assert not any(a.msg.stale for a in ep.messages("/robot/applied"))  # the policy answered every tick
+    assert (out / "report.md").read_text().startswith("# Evaluation: lift")
+    video = out / "videos" / f"{Path(rows[0]['path']).stem}.mp4"
+    assert video.is_file() and video.stat().st_size > 2000
+
+
+def test_the_expert_row_goes_through_the_same_path(tmp_path):
+    out = tmp_path / "expert"
+    proc = viewscale(
+        "eval", "--expert", "--task", "lift", "--episodes", "2", "--rig", "three15", "--size", "32", "--out", str(out)
+    )
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    s = json.loads((out / "report.json").read_text())["summary"]
+    assert (s["successes"], s["episodes"]) == (2, 2) and s["expert"]
+    assert len(list((out / "rollouts").glob("*.mcap"))) == 2
+
+
+def test_eval_refuses_bad_input_with_one_line(tiny_checkpoint, tmp_path):
+    for args, text in [
+        (["--task", "pour"], "unknown task"),
+        (["--episodes", "0"], "--episodes"),
+        (["--views", "XX"], "XX"),
+    ]:
+        proc = viewscale("eval", "--checkpoint", str(tiny_checkpoint), "--out", str(tmp_path / "x"), *args)
+        assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr[-2000:]
+        assert proc.stderr.strip().splitlines()[-1].startswith("error:") and text in proc.stderr
+    proc = viewscale("eval", "--checkpoint", str(tmp_path / "none"), "--out", str(tmp_path / "y"))
+    assert proc.returncode == 2 and "error:" in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_rerendered_episodes_read_and_build_like_collected_ones(sim_dataset, tmp_path):
+    raw = sim_dataset.parent / "raw"
+    out = tmp_path / "raw-three30"
+    proc = viewscale("rerender", "--raw", str(raw), "--rig", "three30", "--out", str(out))
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
+    sources = sorted(raw.glob("*.mcap"))
+    made = sorted(out.glob("*.mcap"))
+    assert len(made) == len(sources) == 2
+    for src_path, new_path in zip(sources, made):
+        src, new = read_episode(src_path), read_episode(new_path)
+        assert new.metadata["rerendered_from"] == str(src_path.resolve()) and "rerendered_from" not in src.metadata
+        assert src.cameras == ["F", "FL", "FR"] and new.cameras == ["F", "FL30", "FR30"]
+        assert new.metadata["rig"] == "three30"
+        assert new.metadata["ticks"] == src.metadata["ticks"] and new.metadata["success"] == src.metadata["success"]
+        s_states, n_states = src.messages("/robot/state"), new.messages("/robot/state")
+        assert [r.publish_time for r in n_states] == [r.publish_time for r in s_states]
+        assert np.abs(np.array([r.msg.eef_pos for r in n_states]) - [r.msg.eef_pos for r in s_states]).max() < 1e-6
+        assert [r.msg.action for r in new.messages("/robot/applied")] == [
+            r.msg.action for r in src.messages("/robot/applied")
+        ]
+        for cam in new.cameras:
+            assert len(new.messages(f"/camera/{cam}/image")) == len(n_states)
+        # same scene, same tick, FL 30 degrees from F instead of 15: the pictures differ
+        a = decode_jpeg(src.messages("/camera/FL/image")[5].msg.data).astype(int)
+        b = decode_jpeg(new.messages("/camera/FL30/image")[5].msg.data).astype(int)
+        assert a.shape == b.shape and np.abs(a - b).mean() > 5
+    build_dataset(out, tmp_path / "ds", BuildParams(views=("F", "FL30", "FR30"), image_size=(32, 32)))
+    assert DatasetStore(tmp_path / "ds").summary["pseudo_demos"] == 6
