@@ -85,7 +85,8 @@ def _check_seed(seed) -> int:
 
 
 class SimWorld:
-    """One task in the shared scene, seen by a rig's cameras. A context manager."""
+    """One task in the shared scene, seen by a rig's cameras (framed for the task: ``Rig.for_task``).
+    A context manager."""
 
     def __init__(self, task: str, rig: Rig, width: int = 84, height: int = 84, control_hz: float = 20.0):
         self._task = make_task(task)
@@ -97,14 +98,14 @@ class SimWorld:
         if not (isinstance(control_hz, numbers.Real) and math.isfinite(control_hz) and 0 < control_hz <= 1 / TIMESTEP):
             raise ValueError(f"control_hz must be in (0, {1 / TIMESTEP:g}], got {control_hz!r}")
         self.task: str = task
-        self.rig: Rig = rig
+        self.rig: Rig = rig.for_task(task)  # the task's framing of the rig (same angles)
         self.control_hz: float = float(control_hz)
         self.seed: int | None = None
         self.tick: int = 0  # control periods since the last reset
         self.width, self.height = int(width), int(height)
         self.substeps = max(1, round(1.0 / (self.control_hz * TIMESTEP)))
 
-        self.model = build_model(self._task, rig, self.width, self.height)
+        self.model = build_model(self._task, self.rig, self.width, self.height)
         self.data = mujoco.MjData(self.model)
         m = self.model
         jid = [mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, j) for j in ARM_JOINTS]

@@ -8,6 +8,14 @@ base view's image-right axis, then ``yaw_deg`` > 0 moves it to its own left abou
 view's image-up axis. Every camera looks at the centre, and FL is exactly 15 degrees from F.
 A camera may instead give an absolute ``azimuth_deg``/``elevation_deg`` (side and top views).
 
+Framing (the defaults, robomimic agentview-like): elevated 55 degrees and looking down on the
+objects' start region with a narrow 25-degree field of view, so that at 84x84 the region spans
+about 70 % of the image width and every task object is at least 8 px across in every view of
+``five15`` (``tests/unit/test_rig.py`` projects them). One framing cannot do that for every task:
+with a 4 cm cube at 8 px, 84 px cover 42 cm, while the can task's workspace (can region to bin)
+is 58 cm wide. So ``tasks`` moves the centre and distance per task, keeping every angle (and so
+every ``R_ext``); ``Rig.for_task`` applies it, and ``SimWorld`` does so for its task.
+
 Conventions (the ones published in foxglove ``CameraCalibration``/``FrameTransform``):
 - optical frame as OpenCV: x right, y down, z forward;
 - ``R_wc`` (camera-to-world rotation) has the optical axes as columns; the pose published on
@@ -45,14 +53,29 @@ class CameraSpec(Frozen):
     fovy_deg: float | None = None  # vertical field of view; default: the rig's
 
 
+class Framing(Frozen):
+    center: tuple[float, float, float] | None = None  # workspace centre for this task; default: the rig's
+    distance: float | None = None  # base camera distance for this task; default: the rig's
+
+
+# The sim tasks' workspaces (sim/tasks.py): lift (the defaults) frames the cube's 16 x 20 cm patch
+# and the gripper at home; can frames its can's patch (y < 0) and most of the bin (y = 0.2), the
+# can (6 cm) at 8+ px; square its nut's patch and the peg.
+TASK_FRAMING: dict[str, Framing] = {
+    "can": Framing(center=(0.49, -0.03, 0.1), distance=1.35),
+    "square": Framing(center=(0.49, -0.03, 0.1), distance=1.2),
+}
+
+
 class RigSpec(Frozen):
     name: str  # rig name, recorded with every episode
-    center: tuple[float, float, float] = (0.4, 0.0, 0.25)  # workspace centre, world frame (m): objects + arm in view
-    distance: float = 1.45  # base camera distance from the centre (m)
+    center: tuple[float, float, float] = (0.49, 0.0, 0.1)  # workspace centre, world frame (m): the lift patch + gripper
+    distance: float = 0.83  # base camera distance from the centre (m)
     azimuth_deg: float = 0.0  # base view direction: 0 = camera on +x looking back at the robot
-    elevation_deg: float = 30.0  # base view height above the horizontal through the centre
-    fovy_deg: float = 45.0  # vertical field of view
+    elevation_deg: float = 55.0  # base view height above the horizontal through the centre
+    fovy_deg: float = 25.0  # vertical field of view
     cameras: dict[str, CameraSpec] = Field(min_length=1)  # name -> rotation of the base view
+    tasks: dict[str, Framing] = Field(default_factory=lambda: dict(TASK_FRAMING))  # per-task centre/distance
 
 
 class Camera:
@@ -149,8 +172,9 @@ def _orbit(center: np.ndarray, distance: float, azimuth_deg: float, elevation_de
 
 
 class Rig:
-    def __init__(self, spec: RigSpec):
+    def __init__(self, spec: RigSpec, task: str | None = None):
         self.spec = spec
+        self.task = task  # the task whose framing was applied (None: the rig's own centre/distance)
         center = np.asarray(spec.center, dtype=np.float64)
         base_pos = _orbit(center, spec.distance, spec.azimuth_deg, spec.elevation_deg)
         base_R = look_at(base_pos, center)
@@ -179,6 +203,18 @@ class Rig:
                 offset *= cam.distance / spec.distance
             self.cameras[name] = Camera(name, center + offset, rot.as_matrix() @ base_R, fovy)
 
+    def for_task(self, task: str) -> Rig:
+        """This rig with ``task``'s framing (centre and distance) applied; the same angles."""
+        if task == self.task:
+            return self
+        if self.task is not None:
+            raise ValueError(f"rig {self.name!r} is framed for task {self.task!r}, not {task!r}")
+        framing = self.spec.tasks.get(task)
+        if framing is None:
+            return Rig(self.spec, task)
+        changes = {k: v for k, v in (("center", framing.center), ("distance", framing.distance)) if v is not None}
+        return Rig(self.spec.model_copy(update=changes), task)
+
     @property
     def name(self) -> str:
         return self.spec.name
@@ -192,8 +228,8 @@ def available_rigs() -> list[str]:
     return sorted(p.stem for p in RIG_DIR.glob("*.yaml"))
 
 
-def load_rig(name_or_path: str) -> Rig:
-    """A preset name (``five15``) or a path to a rig YAML."""
+def load_rig(name_or_path: str, task: str | None = None) -> Rig:
+    """A preset name (``five15``) or a path to a rig YAML, framed for ``task`` if one is given."""
     path = Path(name_or_path)
     if not path.suffix:
         path = RIG_DIR / f"{name_or_path}.yaml"
@@ -202,6 +238,7 @@ def load_rig(name_or_path: str) -> Rig:
     data = read_yaml(path)
     data.setdefault("name", path.stem)
     try:
-        return Rig(RigSpec.model_validate(data))
+        rig = Rig(RigSpec.model_validate(data))
     except ValueError as exc:
         raise ConfigError(f"invalid rig {path}: {exc}") from exc
+    return rig if task is None else rig.for_task(task)
