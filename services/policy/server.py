@@ -700,9 +700,7 @@ class LocalWorkers:
 
 def rig_cameras(rig: str, task: str | None, width: int, height: int) -> dict[str, CameraSpec]:
     """Cameras of a rig file, calibrated at the checkpoint's frame size."""
-    r = load_rig(rig)
-    if task is not None and hasattr(r, "for_task"):
-        r = r.for_task(task)
+    r = load_rig(rig, task)  # sim rigs move with the task's framing (services.core.rig)
     return {n: CameraSpec(n, width, height, c.K(width, height), c.R_ext, c.position) for n, c in r.cameras.items()}
 
 
