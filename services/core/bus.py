@@ -11,6 +11,7 @@ import json
 import logging
 import socket
 import time
+from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Literal
@@ -94,6 +95,7 @@ class Bus:
                 f"within {cfg.connect_timeout_s:.0f}s (is the router running?): {exc}"
             ) from exc
         self._keep: list[object] = []  # declared entities live as long as the bus
+        self.callback_errors: Counter[str] = Counter()  # key -> handler failures (caught, logged, counted)
 
     # -- context management -------------------------------------------------------------
     def __enter__(self) -> Bus:
@@ -134,7 +136,8 @@ class Bus:
             try:
                 callback(rx)
             except Exception:  # a bad handler must not kill zenoh's thread
-                log.exception("subscriber callback failed on %s", rx.key)
+                self.callback_errors[rx.key] += 1
+                log.exception("subscriber callback failed on %s (%d so far)", rx.key, self.callback_errors[rx.key])
 
         self._keep.append(self.session.declare_subscriber(self.key(key), on_sample))
 
@@ -167,12 +170,17 @@ class Bus:
         def on_query(query: zenoh.Query) -> None:
             payload = query.payload.to_bytes() if query.payload is not None else b""
             try:
-                reply = handler(payload)
-            except Exception as exc:
-                log.exception("queryable %s failed", key)
-                query.reply_err(f"{type(exc).__name__}: {exc}".encode())
-                return
-            query.reply(full, reply)
+                try:
+                    reply = handler(payload)
+                except Exception as exc:
+                    log.exception("queryable %s failed", key)
+                    query.reply_err(f"{type(exc).__name__}: {exc}".encode())
+                    return
+                query.reply(full, reply)
+            finally:
+                # The query completes when it is dropped: not when the last reference goes, which a
+                # log record holding a traceback can delay until the caller's timeout.
+                query.drop()
 
         self._keep.append(self.session.declare_queryable(full, on_query))
 
