@@ -24,6 +24,7 @@ from services.core.bus import Bus
 from services.core.clock import Rate, now_ns
 from services.core.rig import load_rig
 from services.core.runtime import serve
+from services.core.validation import Invalid, check_sim_request, decode_strict
 from services.pb.common_pb2 import Header
 from services.pb.episode_pb2 import SimCommand, SimControlReply, SimControlRequest
 from services.pb.sensors_pb2 import ObjectPose, TaskState
@@ -107,8 +108,10 @@ class SimService:
     def _on_control(self, payload: bytes) -> bytes:
         """Zenoh thread: hand the request to the loop thread and wait for its answer."""
         try:
-            req = SimControlRequest.FromString(payload)
-        except Exception as exc:  # DecodeError and friends: answer, never raise into zenoh
+            req = decode_strict(SimControlRequest, payload)  # another type's bytes leave unknown fields
+            check_sim_request(req, TASKS)
+        except Invalid as exc:  # answer, never raise into zenoh
+            log.warning("refused a control request (%d bytes): %s", len(payload), str(exc))
             return SimControlReply(ok=False, error=f"malformed SimControlRequest: {exc}").SerializeToString()
         done: Future = Future()
         self._jobs.put((req, done))

@@ -83,6 +83,30 @@ def decode_resized(data: bytes, size: tuple[int, int], src: tuple[int, int]) -> 
     return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
 
 
+_SOF = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}  # start-of-frame markers
+
+
+def jpeg_size(data: bytes) -> tuple[int, int]:
+    """(width, height) from a JPEG's frame header, without decoding it; ImageDecodeError if none."""
+    if len(data) < 4 or data[:2] != b"\xff\xd8":
+        raise ImageDecodeError(f"not a JPEG ({len(data)} bytes)")
+    i = 2
+    while i + 4 <= len(data):
+        if data[i] != 0xFF:
+            raise ImageDecodeError(f"corrupt JPEG marker at byte {i}")
+        marker = data[i + 1]
+        if marker == 0xFF:  # fill byte
+            i += 1
+            continue
+        length = int.from_bytes(data[i + 2 : i + 4], "big")
+        if marker in _SOF and i + 9 <= len(data):
+            return int.from_bytes(data[i + 7 : i + 9], "big"), int.from_bytes(data[i + 5 : i + 7], "big")
+        if marker in (0xD9, 0xDA) or length < 2:  # end of image or start of scan before any frame header
+            break
+        i += 2 + length
+    raise ImageDecodeError(f"JPEG without a frame header ({len(data)} bytes)")
+
+
 def compressed_image(rgb: np.ndarray, stamp_ns: int, frame_id: str, quality: int = 90) -> CompressedImage:
     msg = CompressedImage(frame_id=frame_id, format="jpeg", data=encode_jpeg(rgb, quality))
     msg.timestamp.FromNanoseconds(stamp_ns)

@@ -27,6 +27,7 @@ import numpy as np
 from services.core import topics
 from services.core.geometry import quat_wxyz_to_matrix
 from services.core.rig import Camera
+from services.core.validation import Invalid, check
 from services.recorder.reader import EpisodeReadError, read_episode
 
 
@@ -253,6 +254,13 @@ def load_raw_episode(path: str | Path, views: list[str]) -> RawEpisode:
     applied = ep.messages(topics.APPLIED_ACTION.mcap_topic)
     if not states:
         raise EpisodeError(f"{name}: no robot states recorded")
+    # Files written by other tools or older recorders may hold what today's recorder refuses.
+    for what, records in (("robot state", states), ("applied action", applied)):
+        for r in records:
+            try:
+                check(r.msg)
+            except Invalid as exc:
+                raise EpisodeError(f"{name}: {what} of tick {r.msg.tick}: {exc}") from None
     try:
         eef_pos = np.array([list(r.msg.eef_pos) for r in states], dtype=np.float64).reshape(len(states), 3)
         eef_quat = np.array([list(r.msg.eef_quat_wxyz) for r in states], dtype=np.float64).reshape(len(states), 4)

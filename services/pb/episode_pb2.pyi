@@ -32,7 +32,7 @@ SIM_COMMAND_RUN: SimCommand
 SIM_COMMAND_PAUSE: SimCommand
 
 class EpisodeMeta(_message.Message):
-    __slots__ = ("episode_id", "task", "seed", "rig", "success", "control_hz", "achieved_hz", "ticks", "frames", "drops", "malformed", "flags", "start_ns", "end_ns", "path", "gaps", "stale_ticks", "clipped_ticks", "lockstep", "rerendered_from")
+    __slots__ = ("episode_id", "task", "seed", "rig", "success", "control_hz", "achieved_hz", "ticks", "frames", "drops", "malformed", "flags", "start_ns", "end_ns", "path", "gaps", "stale_ticks", "clipped_ticks", "lockstep", "rerendered_from", "malformed_reasons")
     class FramesEntry(_message.Message):
         __slots__ = ("key", "value")
         KEY_FIELD_NUMBER: _ClassVar[int]
@@ -61,6 +61,13 @@ class EpisodeMeta(_message.Message):
         key: str
         value: int
         def __init__(self, key: _Optional[str] = ..., value: _Optional[int] = ...) -> None: ...
+    class MalformedReasonsEntry(_message.Message):
+        __slots__ = ("key", "value")
+        KEY_FIELD_NUMBER: _ClassVar[int]
+        VALUE_FIELD_NUMBER: _ClassVar[int]
+        key: str
+        value: int
+        def __init__(self, key: _Optional[str] = ..., value: _Optional[int] = ...) -> None: ...
     EPISODE_ID_FIELD_NUMBER: _ClassVar[int]
     TASK_FIELD_NUMBER: _ClassVar[int]
     SEED_FIELD_NUMBER: _ClassVar[int]
@@ -81,6 +88,7 @@ class EpisodeMeta(_message.Message):
     CLIPPED_TICKS_FIELD_NUMBER: _ClassVar[int]
     LOCKSTEP_FIELD_NUMBER: _ClassVar[int]
     RERENDERED_FROM_FIELD_NUMBER: _ClassVar[int]
+    MALFORMED_REASONS_FIELD_NUMBER: _ClassVar[int]
     episode_id: str
     task: str
     seed: int
@@ -101,7 +109,8 @@ class EpisodeMeta(_message.Message):
     clipped_ticks: int
     lockstep: bool
     rerendered_from: str
-    def __init__(self, episode_id: _Optional[str] = ..., task: _Optional[str] = ..., seed: _Optional[int] = ..., rig: _Optional[str] = ..., success: _Optional[bool] = ..., control_hz: _Optional[float] = ..., achieved_hz: _Optional[float] = ..., ticks: _Optional[int] = ..., frames: _Optional[_Mapping[str, int]] = ..., drops: _Optional[_Mapping[str, int]] = ..., malformed: _Optional[_Mapping[str, int]] = ..., flags: _Optional[_Iterable[str]] = ..., start_ns: _Optional[int] = ..., end_ns: _Optional[int] = ..., path: _Optional[str] = ..., gaps: _Optional[_Mapping[str, int]] = ..., stale_ticks: _Optional[int] = ..., clipped_ticks: _Optional[int] = ..., lockstep: _Optional[bool] = ..., rerendered_from: _Optional[str] = ...) -> None: ...
+    malformed_reasons: _containers.ScalarMap[str, int]
+    def __init__(self, episode_id: _Optional[str] = ..., task: _Optional[str] = ..., seed: _Optional[int] = ..., rig: _Optional[str] = ..., success: _Optional[bool] = ..., control_hz: _Optional[float] = ..., achieved_hz: _Optional[float] = ..., ticks: _Optional[int] = ..., frames: _Optional[_Mapping[str, int]] = ..., drops: _Optional[_Mapping[str, int]] = ..., malformed: _Optional[_Mapping[str, int]] = ..., flags: _Optional[_Iterable[str]] = ..., start_ns: _Optional[int] = ..., end_ns: _Optional[int] = ..., path: _Optional[str] = ..., gaps: _Optional[_Mapping[str, int]] = ..., stale_ticks: _Optional[int] = ..., clipped_ticks: _Optional[int] = ..., lockstep: _Optional[bool] = ..., rerendered_from: _Optional[str] = ..., malformed_reasons: _Optional[_Mapping[str, int]] = ...) -> None: ...
 
 class EpisodeRequest(_message.Message):
     __slots__ = ("command", "episode_id", "task", "seed", "rig", "control_hz", "success", "ticks", "lockstep", "interrupted")

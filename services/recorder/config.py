@@ -18,5 +18,6 @@ class RecorderConfig(Frozen):
     flush_interval_s: float = Field(1.0, gt=0)  # also cut a chunk after this long, bounding loss on slow topics
     min_rate_fraction: float = Field(0.9, ge=0, le=1)  # flag episodes whose robot-state rate < this x control_hz
     stop_grace_s: float = Field(2.0, ge=0)  # STOP waits up to this long for the ticks the source published
+    max_episode_ticks: int = Field(360_000, ge=1)  # a STOP claiming more ticks is refused (5 h at 20 Hz)
     decode_images: bool = True  # fully decode every JPEG to validate it (else check its markers only)
     log_level: str = "INFO"  # logging level of the process

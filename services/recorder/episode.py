@@ -20,6 +20,7 @@ from collections import Counter
 from dataclasses import dataclass, field
 
 from services.core.topics import APPLIED_ACTION, ROBOT_STATE
+from services.core.validation import counts_by_reason
 from services.pb.common_pb2 import Header
 from services.pb.episode_pb2 import EpisodeMeta, EpisodeRequest
 
@@ -43,6 +44,7 @@ class EpisodeCounts:
     meta: EpisodeMeta  # what START said: id, task, seed, rig, control rate, lockstep, start, path
     written: Counter = field(default_factory=Counter)  # key -> messages written
     malformed: Counter = field(default_factory=Counter)  # key -> payloads refused
+    malformed_reasons: Counter = field(default_factory=Counter)  # (key, reason) -> payloads refused
     gaps: Counter = field(default_factory=Counter)  # key -> sequence discontinuities
     resets: Counter = field(default_factory=Counter)  # key -> times the sequence went back (publisher restart)
     missing: Counter = field(default_factory=Counter)  # key -> messages skipped by forward sequence jumps
@@ -146,6 +148,7 @@ def episode_meta(
     drops = {k: v for k, v in drops.items() if v}
     meta.drops.update(drops)
     meta.malformed.update({k: v for k, v in ep.malformed.items() if v})
+    meta.malformed_reasons.update(counts_by_reason(ep.malformed_reasons))
     meta.gaps.update({k: v for k, v in ep.gaps.items() if v})
     meta.stale_ticks = ep.stale
     meta.clipped_ticks = ep.clipped

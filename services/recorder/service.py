@@ -28,12 +28,13 @@ from concurrent.futures import TimeoutError as FutureTimeout
 from dataclasses import dataclass
 from pathlib import Path
 
-from google.protobuf.message import DecodeError, Message
+from google.protobuf.message import Message
 
 from services.core.bus import Bus, Received
 from services.core.clock import now_ns
 from services.core.runtime import serve
 from services.core.topics import EPISODE, EPISODE_CONTROL, ROBOT_STATE, Topic, topic_for_key
+from services.core.validation import Context, Invalid, capture_ns, check_episode_request, decode_strict, parse
 from services.pb.episode_pb2 import (
     EPISODE_COMMAND_DISCARD,
     EPISODE_COMMAND_START,
@@ -45,7 +46,6 @@ from services.pb.episode_pb2 import (
 )
 from services.recorder.config import RecorderConfig
 from services.recorder.episode import EpisodeCounts, camera_of, episode_meta, fmt_counts, is_calibration
-from services.recorder.validate import MalformedPayload, capture_ns, parse
 from services.recorder.writer import (
     EPISODE_CHANNEL,
     EPISODE_RECORD,
@@ -91,6 +91,8 @@ class Recorder:
         self._drop_lock = threading.Lock()
         self._unknown: Counter[str] = Counter()
         self._idle_malformed: Counter[str] = Counter()
+        self._image_sizes: dict[str, tuple[int, int]] = {}  # camera -> calibrated (width, height)
+        self.refused_requests = 0  # control requests of the wrong type or with bad values
         self._calibration: dict[str, tuple[Received, Message]] = {}  # key -> latest good sample
         self._commands: queue.SimpleQueue[tuple[Callable[[], EpisodeReply | None], Future]] = queue.SimpleQueue()
         self._alive_events: queue.SimpleQueue[tuple[str, bool, int]] = queue.SimpleQueue()
@@ -188,8 +190,11 @@ class Recorder:
 
     def _on_control(self, payload: bytes) -> bytes:
         try:
-            req = EpisodeRequest.FromString(payload)
-        except DecodeError as exc:
+            req = decode_strict(EpisodeRequest, payload)  # another type's bytes leave unknown fields
+            check_episode_request(req, self.cfg.max_episode_ticks)
+        except Invalid as exc:
+            self.refused_requests += 1
+            log.warning("refused a control request (%d bytes): %s", len(payload), str(exc))
             return EpisodeReply(
                 ok=False, error=f"malformed EpisodeRequest ({len(payload)} bytes): {exc}", recording=self._recording
             ).SerializeToString()
@@ -420,26 +425,33 @@ class Recorder:
 
     def _process(self, key: str, rx: Received) -> None:
         topic = self._topics[key]
+        ep = self._episode
+        ctx = Context(episode_id=ep.meta.episode_id if ep is not None else "", image_sizes=self._image_sizes)
         try:
-            msg = parse(topic, rx.payload, self.cfg.decode_images)
-        except MalformedPayload as exc:
-            self._malformed(key, rx, str(exc))
+            msg = parse(topic, rx.payload, self.cfg.decode_images, ctx)
+        except Invalid as exc:
+            self._malformed(key, rx, exc)
             return
         calibration = is_calibration(key)
         if calibration:
             self._calibration[key] = (rx, msg)
+            if key.endswith("/calibration"):  # frames must match it from now on
+                self._image_sizes[camera_of(key)] = (int(msg.width), int(msg.height))
         ep = self._episode
         if ep is None or (rx.receive_ns < ep.start_ns and not calibration):
             return  # arrived before the episode started
         self._write(ep, key, rx, msg)
 
-    def _malformed(self, key: str, rx: Received, reason: str) -> None:
+    def _malformed(self, key: str, rx: Received, exc: Invalid) -> None:
         ep = self._episode
-        counts = ep.malformed if ep is not None and rx.receive_ns >= ep.start_ns else self._idle_malformed
+        in_episode = ep is not None and rx.receive_ns >= ep.start_ns
+        counts = ep.malformed if in_episode else self._idle_malformed
         counts[key] += 1
+        if in_episode:
+            ep.malformed_reasons[(key, exc.reason)] += 1
         n = counts[key]
         if n <= _LOG_FIRST or n % 100 == 0:
-            log.warning("malformed payload on %s (%d bytes, #%d): %s", key, len(rx.payload), n, reason)
+            log.warning("malformed payload on %s (%d bytes, #%d): %s", key, len(rx.payload), n, exc)
 
     def _write(self, ep: _Episode, key: str, rx: Received, msg: Message) -> None:
         if ep.error:

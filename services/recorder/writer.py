@@ -57,7 +57,7 @@ def episode_path(out_dir: Path, episode_id: str) -> Path:
 
 
 # -- metadata records -------------------------------------------------------------------------
-_MAP_FIELDS = ("frames", "drops", "malformed", "gaps")
+_MAP_FIELDS = ("frames", "drops", "malformed", "gaps", "malformed_reasons")
 
 
 def meta_to_record(meta: EpisodeMeta) -> dict[str, str]:
@@ -136,7 +136,9 @@ class EpisodeWriter:
         self.part_path = self.path.with_name(self.path.name + PART_SUFFIX)
         self.flush_interval_s = flush_interval_s
         self._file: IO[bytes] = open(self.part_path, "xb")  # never clobber another episode's file
-        self._mcap = McapWriter(self._file, chunk_size=chunk_size, compression=CompressionType.ZSTD)
+        # Chunks are cut here, not by the mcap writer: its own limit sits far above ours.
+        self._mcap = McapWriter(self._file, chunk_size=1 << 62, compression=CompressionType.ZSTD)
+        self.chunk_size = chunk_size
         self._mcap.start(profile="", library=LIBRARY)
         self._file.flush()
         self._schemas: dict[str, int] = {}  # message full name -> schema id
@@ -145,7 +147,8 @@ class EpisodeWriter:
         self._seq: dict[str, int] = {}  # mcap topic -> next sequence
         self._on_disk = self._file.tell()
         self._last_flush = time.monotonic()
-        self._pending = 0  # messages in the open chunk
+        self._open: list[tuple[int, int, int, bytes, int, int]] = []  # the open chunk: (log, order, channel, ...)
+        self._open_bytes = 0
         self.messages = 0
         self.closed = False
 
@@ -174,16 +177,11 @@ class EpisodeWriter:
         channel_id = self._channel(topic, msg_type)
         seq = self._seq.get(topic, 0)
         self._seq[topic] = seq + 1
-        self._mcap.add_message(
-            channel_id=channel_id, log_time=int(log_time), data=data, publish_time=int(publish_time), sequence=seq
-        )
+        self._open.append((int(log_time), self.messages, channel_id, data, int(publish_time), seq))
+        self._open_bytes += len(data)
         self.messages += 1
-        self._pending += 1
-        if self._file.tell() != self._on_disk:  # the mcap writer just cut a chunk: hand it to the OS
-            self._file.flush()
-            self._on_disk = self._file.tell()
-            self._last_flush = time.monotonic()
-            self._pending = 0
+        if self._open_bytes >= self.chunk_size:
+            self.flush()
         return seq
 
     def write_message(self, topic: str, msg: Message, log_time: int, publish_time: int) -> int:
@@ -197,24 +195,33 @@ class EpisodeWriter:
     @property
     def unflushed(self) -> int:
         """Messages in the open chunk: what a kill -9 right now would lose."""
-        return self._pending
+        return len(self._open)
 
     def count(self, topic: str) -> int:
         return self._seq.get(topic, 0)
 
     def flush(self) -> None:
-        """Cut the open chunk now and hand it to the OS."""
+        """Cut the open chunk now, its messages in log-time order (queues of several topics drain in
+        turns, so they arrive out of order by a little), and hand it to the OS."""
+        self._open.sort(key=lambda m: (m[0], m[1]))
+        for log_time, _, channel_id, data, publish_time, seq in self._open:
+            self._mcap.add_message(
+                channel_id=channel_id, log_time=log_time, data=data, publish_time=publish_time, sequence=seq
+            )
+        self._open.clear()
+        self._open_bytes = 0
         self._mcap.flush()
+        self._file.flush()
         self._on_disk = self._file.tell()
         self._last_flush = time.monotonic()
-        self._pending = 0
 
     def maybe_flush(self) -> None:
-        if self._pending and time.monotonic() - self._last_flush >= self.flush_interval_s:
+        if self._open and time.monotonic() - self._last_flush >= self.flush_interval_s:
             self.flush()
 
     def close(self) -> Path:
         """Write the summary and footer, fsync, and rename ``.part`` to the final name."""
+        self.flush()
         self._mcap.finish()
         self._file.flush()
         os.fsync(self._file.fileno())

@@ -22,6 +22,7 @@ from services.core.bus import Bus, Received
 from services.core.clock import now_ns
 from services.core.robot_types import action_msg
 from services.core.runtime import serve
+from services.core.validation import Invalid, check
 from services.pb.common_pb2 import Header
 from services.pb.control_pb2 import EefCommand
 from services.pb.sensors_pb2 import RobotState, TaskState
@@ -68,22 +69,20 @@ class TeleopService:
         log.warning("malformed payload on %s (%d bytes): %s", rx.key, len(rx.payload), exc)
 
     def _on_state(self, msg: RobotState, rx: Received) -> None:
-        if len(msg.eef_pos) != 3 or len(msg.eef_quat_wxyz) != 4:
-            # Another schema's payload can parse as a RobotState; it must not drive the arm.
-            self._on_malformed(
-                rx,
-                ValueError(
-                    f"robot state with {len(msg.eef_pos)} position and {len(msg.eef_quat_wxyz)} quaternion values"
-                ),
-            )
+        try:
+            check(msg)  # another schema's payload can parse as a RobotState; it must not drive the arm
+        except Invalid as exc:
+            self._on_malformed(rx, exc)
             return
         with self._cv:
             self._state = msg
             self._cv.notify_all()
 
     def _on_task(self, msg: TaskState, rx: Received) -> None:
-        if not msg.task or any(len(o.pos) != 3 or len(o.quat_wxyz) != 4 for o in msg.objects):
-            self._on_malformed(rx, ValueError("task state without a task or with malformed object poses"))
+        try:
+            check(msg)
+        except Invalid as exc:
+            self._on_malformed(rx, exc)
             return
         with self._cv:
             self._tasks[(msg.episode_id, msg.tick)] = msg

@@ -81,6 +81,7 @@ def write_episode(
     success: bool = True,
     calib_size: tuple[int, int] | None = None,
     scale: float = 1.0,
+    state_fields: dict[int, dict] | None = None,
 ) -> Path:
     """Write ``<out_dir>/<episode_id>.mcap``; returns its path."""
     rg = load_rig(rig)
@@ -125,6 +126,9 @@ def write_episode(
             gripper=float(grip[k]),
             episode_id=episode_id,
         )
+        for name, value in (state_fields or {}).get(k, {}).items():  # a fault written into tick k
+            del getattr(state, name)[:]
+            getattr(state, name).extend(value)
         w.write_message(topics.ROBOT_STATE.mcap_topic, state, stamp + 1_000_000, stamp)
         if k not in missing_actions:
             stale = k in stale_actions

@@ -417,3 +417,42 @@ def test_an_episode_from_another_camera_placement_keeps_its_own_calibration(tmp_
         base = from_space(np.load(d.path("action")).astype(np.float64), "camera", R_ext=rig.cameras["F"].R_ext)
         np.testing.assert_allclose(base, trajectory(24, 0)[0], atol=2e-6)
     assert r.summary["episodes"] == 2
+
+
+def test_episodes_with_wrong_values_are_one_clear_error_or_skipped_with_their_reason(tmp_path, capsys):
+    raw = tmp_path / "raw"
+    write_episode(raw, "good", 30, cameras=["F"])
+    write_episode(raw, "nan-pose", 30, cameras=["F"], state_fields={7: {"eef_pos": [0.4, float("nan"), 0.2]}})
+    write_episode(raw, "zero-quat", 30, cameras=["F"], state_fields={3: {"eef_quat_wxyz": [0.0, 0.0, 0.0, 0.0]}})
+    args = [
+        "dataset",
+        "build",
+        "--raw",
+        str(raw),
+        "--views",
+        "F",
+        "--out",
+        str(tmp_path / "ds"),
+        "--image-size",
+        "32x24",
+    ]
+    assert viewscale(args) == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err
+    assert (
+        err.strip().splitlines()[-1]
+        == "error: nan-pose.mcap: robot state of tick 7: non-finite: eef_pos = [0.4, nan, 0.2]"
+    )
+    assert viewscale([*args, "--skip-bad"]) == 0
+    out = capsys.readouterr()
+    assert "nan-pose.mcap: SKIPPED: nan-pose.mcap: robot state of tick 7: non-finite" in out.err
+    assert "zero-quat.mcap: SKIPPED: zero-quat.mcap: robot state of tick 3: not a unit quaternion" in out.err
+    assert DatasetStore(tmp_path / "ds").episode_ids == ["good"]
+
+
+def test_an_unwritable_out_is_one_error_line(raw_dir, tmp_path, capsys):
+    blocker = tmp_path / "a-file"
+    blocker.write_text("")
+    rc = viewscale(["dataset", "build", "--raw", str(raw_dir), "--views", "F", "--out", str(blocker / "ds")])
+    err = capsys.readouterr().err
+    assert rc == 2 and err.strip() == f"error: --out {blocker / 'ds'}: Not a directory"

@@ -25,6 +25,8 @@ from services.pb.episode_pb2 import (
     EpisodeMeta,
     EpisodeReply,
     EpisodeRequest,
+    SimCommand,
+    SimControlRequest,
 )
 from services.pb.sensors_pb2 import RobotState, TaskState
 from services.recorder.config import RecorderConfig
@@ -34,6 +36,19 @@ from services.recorder.writer import EPISODE_RECORD, record_to_dict
 
 PERIOD_NS = 20_000_000  # 50 Hz capture stamps
 RNG = np.random.default_rng(1)
+
+
+def chunk_log_times(path) -> list[list[int]]:
+    """The log times of every chunk's messages, in the order they are stored."""
+    from mcap.records import Chunk, Message
+    from mcap.stream_reader import StreamReader, breakup_chunk
+
+    out = []
+    with open(path, "rb") as f:
+        for record in StreamReader(f, skip_magic=False, emit_chunks=True).records:
+            if isinstance(record, Chunk):
+                out.append([r.log_time for r in breakup_chunk(record) if isinstance(r, Message)])
+    return out
 
 
 def wait_for(cond: Callable[[], object], timeout: float = 10.0, what: str = "condition"):
@@ -118,7 +133,9 @@ class Source:
     def tick(self, i: int, seq: int | None = None) -> int:
         stamp = self.t0 + i * PERIOD_NS
         seq = i if seq is None else seq
-        state = RobotState(tick=i, eef_pos=[0.4, 0.0, 0.2], eef_quat_wxyz=[1, 0, 0, 0], episode_id="e")
+        state = RobotState(
+            tick=i, eef_pos=[0.4, 0.0, 0.2], eef_quat_wxyz=[1, 0, 0, 0]
+        )  # a source that names no episode
         state.header.stamp_ns, state.header.seq = stamp, seq
         self.state.put(state)
         for c in self.cameras:
@@ -126,6 +143,7 @@ class Source:
         applied = AppliedAction(tick=i)
         applied.header.stamp_ns, applied.header.seq = stamp, seq
         applied.action.dp.extend([0.0, 0.0, 0.01])
+        applied.action.drot.extend([0.0, 0.0, 0.0])
         self.applied.put(applied)
         task = TaskState(tick=i, task="lift", seed=3)
         task.header.stamp_ns, task.header.seq = stamp, seq
@@ -208,6 +226,8 @@ def test_records_a_session_into_a_self_contained_mcap(net, make_recorder, tmp_pa
         log_times = [m.log_time for m, _ in msgs]
         pub_times = [m.publish_time for m, _ in msgs]
         assert log_times == sorted(log_times) and pub_times == sorted(pub_times), topic
+    chunks = chunk_log_times(path)  # what `mcap doctor` checks: every chunk in log-time order
+    assert sum(len(c) for c in chunks) == sum(counts.values()) and all(c == sorted(c) for c in chunks)
     for topic in ("/robot/state", "/camera/F/image", "/sim/task"):
         assert [m.publish_time for m, _ in per_channel[topic]] == src.stamps
         # receive time: after capture, inside the episode
@@ -265,6 +285,58 @@ def test_control_queryable_answers_every_command_and_error(net, make_recorder, t
     err(start(pub, "c"), "already exists")
     assert control(pub, EPISODE_COMMAND_DISCARD, episode_id="c").ok  # a finished episode's file
     assert not (out / "c.mcap").exists()
+
+
+def test_control_requests_of_another_type_or_with_absurd_values_are_refused(net, make_recorder, tmp_path):
+    make_recorder()
+    pub = net.client()
+    pub.wait_alive(["recorder"], timeout=10)
+    # A sim RESET's bytes: parsed naively they read as an EpisodeRequest START.
+    sim = SimControlRequest(command=SimCommand.SIM_COMMAND_RESET, task="lift", seed=5, episode_id="x")
+    reply = EpisodeReply.FromString(pub.query(topics.EPISODE_CONTROL, sim.SerializeToString(), timeout=15))
+    assert not reply.ok and "wrong schema" in reply.error and not status(pub).recording
+    assert not list((tmp_path / "episodes").glob("*"))
+    assert start(pub, "big").ok
+    reply = control(pub, EPISODE_COMMAND_STOP, success=True, ticks=10**9)
+    assert not reply.ok and "ticks = 1000000000" in reply.error and status(pub).recording  # nothing stored
+    assert control(pub, EPISODE_COMMAND_STOP, success=True, ticks=0).ok
+
+
+def test_well_formed_wrong_messages_are_counted_per_reason_and_never_written(net, make_recorder):
+    make_recorder()
+    pub = net.client()
+    pub.wait_alive(["recorder"], timeout=10)
+    src = Source(pub, cameras=("F",))
+    src.publish_calibration()
+    raw_state = pub.publisher(topics.ROBOT_STATE)
+    raw_image = pub.publisher(topics.camera_image("F"))
+    assert start(pub, "wrong-values").ok
+    for i in range(10):
+        src.tick(i)
+        if i % 2 == 0:
+            bad = RobotState(tick=i, eef_pos=[float("nan"), 0, 0.2], eef_quat_wxyz=[1, 0, 0, 0])
+            bad.header.stamp_ns, bad.header.seq = src.t0 + i * PERIOD_NS, 1000 + i
+            raw_state.put(bad.SerializeToString())
+            other = RobotState(tick=i, eef_pos=[0.4, 0, 0.2], eef_quat_wxyz=[1, 0, 0, 0], episode_id="someone-else")
+            other.header.stamp_ns = src.t0 + i * PERIOD_NS
+            raw_state.put(other.SerializeToString())
+            small = compressed_image(np.zeros((12, 16, 3), np.uint8), src.t0 + i * PERIOD_NS, "F")  # 32x24 calibrated
+            raw_image.put(small.SerializeToString())
+    reply = control(pub, EPISODE_COMMAND_STOP, success=True, ticks=10)
+    assert reply.ok, reply.error
+    m = reply.meta
+    assert dict(m.malformed_reasons) == {
+        "robot/state: non-finite": 5,
+        "robot/state: another episode": 5,
+        "camera/F/image: wrong image size": 5,
+    }
+    assert dict(m.malformed) == {"robot/state": 10, "camera/F/image": 5}
+    ep = read_episode(m.path)
+    assert ep.metadata["malformed_reasons"] == dict(m.malformed_reasons)
+    states = ep.messages("/robot/state")
+    assert len(states) == 10 and all(np.isfinite(r.msg.eef_pos).all() and not r.msg.episode_id for r in states)
+    assert {(r.msg.format, len(r.msg.data) > 0) for r in ep.messages("/camera/F/image")} == {("jpeg", True)}
+    assert len(ep.messages("/camera/F/image")) == 10
 
 
 def test_malformed_payloads_are_counted_and_no_good_message_is_lost(net, make_recorder):

@@ -14,13 +14,14 @@ from services.core.config import ConfigError, load_config
 from services.core.rig import Camera, look_at
 from services.core.tensors import compressed_image, decode_jpeg, encode_jpeg
 from services.core.topics import ROBOT_STATE, camera_calibration, camera_image, camera_pose
+from services.core.validation import Invalid as MalformedPayload
+from services.core.validation import parse
 from services.pb.episode_pb2 import EpisodeMeta
 from services.pb.sensors_pb2 import RobotState
 from services.recorder.config import RecorderConfig
 from services.recorder.reader import EpisodeReadError, read_episode
 from services.recorder.recover import RECOVERED_FLAG, RecoveryError, salvage
 from services.recorder.recover import main as recover_main
-from services.recorder.validate import MalformedPayload, parse
 from services.recorder.writer import (
     EPISODE_CHANNEL,
     EPISODE_RECORD,
@@ -196,6 +197,7 @@ def test_read_episode_gives_typed_metadata_and_decoded_messages(tmp_path):
         "drops": {},
         "malformed": {},
         "gaps": {},
+        "malformed_reasons": {},
         "flags": ["camera F: example flag"],
         "start_ns": T0,
         "end_ns": meta.end_ns,
