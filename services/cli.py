@@ -25,6 +25,7 @@ def _collect(args: argparse.Namespace) -> int:
     os.environ.setdefault("MUJOCO_GL", "egl")
     from services.core.config import ConfigError
     from services.core.rig import load_rig
+    from services.core.runtime import OutputError
     from services.session.collect import CollectError, collect
     from services.session.config import EVAL_SEED_FLOOR
 
@@ -32,6 +33,14 @@ def _collect(args: argparse.Namespace) -> int:
         load_rig(args.rig)  # fail fast on a typo, before starting anything
         if args.task not in ("lift", "can", "square"):
             raise ConfigError(f"unknown task {args.task!r}; tasks: lift, can, square")
+        if args.episodes < 1:
+            raise ConfigError(f"--episodes must be at least 1, got {args.episodes}")
+        if not args.hz > 0:
+            raise ConfigError(f"--hz must be positive, got {args.hz}")
+        if args.max_ticks is not None and args.max_ticks < 1:
+            raise ConfigError(f"--max-ticks must be at least 1, got {args.max_ticks}")
+        if args.size is not None and not 16 <= args.size <= 4096:
+            raise ConfigError(f"--size must be 16..4096 px, got {args.size}")
         last_seed = args.seed + 3 * args.episodes  # failed attempts move on to the next seed
         if args.seed < 0 or last_seed >= EVAL_SEED_FLOOR:
             raise ConfigError(
@@ -46,7 +55,7 @@ def _collect(args: argparse.Namespace) -> int:
             extra.setdefault(service, []).append(rest)
         # SIGTERM (and SIGINT, even where a parent shell ignores it) unwinds like Ctrl-C, so the
         # episode in progress is closed and kept (flagged) and every service is stopped.
-        for sig in (signal.SIGTERM, signal.SIGINT):
+        for sig in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):
             signal.signal(sig, _interrupt)
         result = collect(
             args.task,
@@ -61,7 +70,7 @@ def _collect(args: argparse.Namespace) -> int:
             max_ticks=args.max_ticks,
             extra=extra,
         )
-    except (CollectError, ConfigError) as exc:
+    except (CollectError, ConfigError, OutputError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt as exc:
@@ -101,7 +110,7 @@ def _eval(args: argparse.Namespace) -> int:
             video=args.video,
             video_camera=args.video_camera,
         )
-        for sig in (signal.SIGTERM, signal.SIGINT):
+        for sig in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):
             signal.signal(sig, _interrupt)
         result = evaluate(spec, Path(args.out))
     except ValueError as exc:
@@ -150,6 +159,30 @@ def _rerender(args: argparse.Namespace) -> int:
         if e.error:
             print(f"  skipped {e.source.name}: {e.error}")
     return 0 if done and len(done) == len(result.episodes) else 1
+
+
+def _experiment(args: argparse.Namespace) -> int:
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    from services.core.config import ConfigError
+    from services.experiment.runner import ExperimentError, Runner
+
+    try:
+        if args.task not in ("lift", "can", "square"):
+            raise ConfigError(f"unknown task {args.task!r}; tasks: lift, can, square")
+        runner = Runner(args.question, args.task, args.scale, Path(args.root), progress=lambda m: print(m, flush=True))
+        for sig in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):
+            signal.signal(sig, _interrupt)
+        runner.run()
+    except (ConfigError, ExperimentError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt as exc:
+        print(
+            f"interrupted ({exc or 'SIGINT'}): finished stages are kept; run the same command to resume",
+            file=sys.stderr,
+        )
+        return 130
+    return 0
 
 
 def _interrupt(signum, _frame):
@@ -271,6 +304,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--size", type=int, help="frame size (default: the recording's)")
     p.set_defaults(func=_rerender)
 
+    p = sub.add_parser("experiment", help="run one of the paper's questions: collect, build, train, evaluate, tabulate")
+    p.add_argument("question", help="q1 .. q5 (experiments/<question>.yaml)")
+    p.add_argument("--task", default="lift", help="lift, can or square (default lift)")
+    p.add_argument(
+        "--scale", default="tiny", help="tiny (a 2-core CPU), paper (a GPU) or smoke (experiments/scales.yaml)"
+    )
+    p.add_argument("--root", default="runs/experiments", help="cache and results directory (default runs/experiments)")
+    p.set_defaults(func=_experiment)
+
     p = sub.add_parser("episode", help="start/stop/discard/status of the recorder's episode (hardware sessions)")
     p.add_argument("action", choices=["start", "stop", "discard", "status"])
     p.add_argument("--connect", default="tcp/127.0.0.1:7447", help="Zenoh router endpoint (default tcp/127.0.0.1:7447)")
@@ -294,6 +336,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from services.core.runtime import die_with_parent
+
+    die_with_parent()  # started by a session or an experiment: do not outlive it
     parser = build_parser()
     args = parser.parse_args(argv)
     logging.basicConfig(

@@ -106,7 +106,18 @@ def validate_config(
     try:
         return model.model_validate(data)
     except ValidationError as exc:
-        raise ConfigError(f"invalid {model.__name__} config{source}:\n{exc}") from exc
+        raise ConfigError(f"invalid {model.__name__} config{source}: {describe_errors(exc)}") from exc
+
+
+def describe_errors(exc: ValidationError) -> str:
+    """pydantic's errors on one line: ``field.path: message (got value)``, joined by ``; ``."""
+    parts = []
+    for e in exc.errors():
+        loc = ".".join(str(p) for p in e["loc"] if p not in ("external",)) or "(config)"
+        got = e.get("input")
+        shown = "" if isinstance(got, dict) or got is None else f" (got {str(got)[:60]!r})"
+        parts.append(f"{loc}: {e['msg']}{shown}")
+    return "; ".join(parts)
 
 
 def load_config(

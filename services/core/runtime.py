@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import ctypes
 import logging
+import os
 import signal
 import sys
 import threading
+from pathlib import Path
 
 
 def configure_logging(level: str = "INFO") -> None:
@@ -18,7 +21,7 @@ def configure_logging(level: str = "INFO") -> None:
 
 
 def stop_on_signals(stop: threading.Event) -> None:
-    """SIGTERM and SIGINT set ``stop`` so the service can close its files cleanly."""
+    """SIGTERM, SIGINT and SIGHUP (a closed terminal) set ``stop`` so the service closes its files cleanly."""
 
     def handler(signum, _frame):
         logging.getLogger("runtime").info("received %s, stopping", signal.Signals(signum).name)
@@ -26,6 +29,7 @@ def stop_on_signals(stop: threading.Event) -> None:
 
     signal.signal(signal.SIGTERM, handler)
     signal.signal(signal.SIGINT, handler)
+    signal.signal(signal.SIGHUP, handler)
 
 
 def announce_ready(service: str, address: str) -> None:
@@ -39,9 +43,50 @@ def serve(name: str, bus_config, build, address: str) -> int:
     taking the bus), print the ready line, run until SIGTERM/SIGINT, close everything."""
     from services.core.bus import Bus  # here, not at import: runtime stays free of zenoh
 
+    die_with_parent()
     stop = threading.Event()
     stop_on_signals(stop)
     with Bus(bus_config) as bus, build(bus) as service:
         announce_ready(name, address)
         service.run(stop)
     return 0
+
+
+PARENT_ENV = "VIEWSCALE_PARENT_PID"
+
+
+def child_env(env: dict[str, str] | None = None) -> dict[str, str]:
+    """The environment for a child process that must not outlive this one (see ``die_with_parent``)."""
+    return dict(os.environ if env is None else env, **{PARENT_ENV: str(os.getpid())})
+
+
+def die_with_parent() -> None:
+    """Called first in a main: when started through ``child_env``, get SIGTERM when the parent dies,
+    however it dies (kill -9 included), so no service outlives its session and every file is
+    closed. Linux only (prctl); elsewhere, and for processes started by hand, nothing changes."""
+    parent = os.environ.pop(PARENT_ENV, None)  # grandchildren get their own, or none
+    if not parent or not sys.platform.startswith("linux"):
+        return
+    pr_set_pdeathsig = 1
+    try:
+        ctypes.CDLL(None, use_errno=True).prctl(pr_set_pdeathsig, signal.SIGTERM, 0, 0, 0)
+    except (OSError, AttributeError):
+        return
+    if os.getppid() != int(parent):  # the parent died before prctl: nobody would send the signal
+        os.kill(os.getpid(), signal.SIGTERM)
+
+
+class OutputError(ValueError):
+    """An output directory that cannot be made or written; the message names the argument."""
+
+
+def writable_dir(path: str | os.PathLike, argument: str) -> Path:
+    """Make ``path`` (and its parents) and check it can be written, before any work starts."""
+    p = Path(path)
+    try:
+        p.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutputError(f"{argument} {p}: {exc.strerror or exc}") from None
+    if not p.is_dir() or not os.access(p, os.W_OK | os.X_OK):
+        raise OutputError(f"{argument} {p}: not a writable directory")
+    return p

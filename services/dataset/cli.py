@@ -16,6 +16,7 @@ import sys
 from pathlib import Path
 
 from services.core.action_spaces import SPACES, STATE_FRAMES
+from services.core.runtime import OutputError, writable_dir
 from services.dataset.build import BuildParams, build_dataset
 from services.dataset.episodes import EpisodeError
 from services.dataset.store import CONTACT_SHEET, DatasetError, DatasetStore
@@ -60,6 +61,9 @@ def _build(args: argparse.Namespace) -> int:
             val_fraction=args.val_fraction,
             split_seed=args.split_seed,
         )
+        if args.jobs < 1:
+            raise DatasetError(f"--jobs must be at least 1, got {args.jobs}")
+        writable_dir(args.out, "--out")  # before an hour of decoding, not after
         result = build_dataset(
             [Path(p) for p in args.raw],
             Path(args.out),
@@ -70,7 +74,7 @@ def _build(args: argparse.Namespace) -> int:
             contact_episodes=args.contact_episodes,
             jobs=args.jobs,
         )
-    except (DatasetError, EpisodeError) as exc:
+    except (DatasetError, EpisodeError, OutputError) as exc:
         return _err(str(exc))
     except OSError as exc:  # an unwritable output, a full disk
         return _err(f"{exc.strerror or exc}: {exc.filename or args.out}")

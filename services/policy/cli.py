@@ -43,6 +43,9 @@ def _load(model, args: argparse.Namespace, flags: list[str], section: str):
 
 
 def _run(coro_factory) -> int:
+    from services.core.runtime import die_with_parent
+
+    die_with_parent()  # a server's workers (and a session's server) go when their parent goes
     stop = asyncio.Event()
 
     async def main() -> int:

@@ -44,6 +44,7 @@ from services.core.action_spaces import eef_chunk_to_base, from_space
 from services.core.geometry import quat_wxyz_to_matrix
 from services.core.rig import load_rig
 from services.core.robot_types import EefDelta, action_msg
+from services.core.runtime import child_env
 from services.core.tensors import from_tensor, to_tensor
 from services.pb import policy_pb2, policy_pb2_grpc
 from services.policy import POLICY_PROTO_VERSION
@@ -660,11 +661,9 @@ class LocalWorkers:
                 "--threads",
                 str(self.cfg.threads),
             ]
-            env = None
+            env = child_env()  # the workers die with the server, however it dies
             if self.cfg.token:
-                import os
-
-                env = dict(os.environ, VIEWSCALE_TOKEN=self.cfg.token)  # not on the command line (ps shows it)
+                env["VIEWSCALE_TOKEN"] = self.cfg.token  # not on the command line (ps shows it)
             err = open(self.log_dir / f"worker-{i}.log", "a") if self.log_dir else None
             self.procs.append(
                 subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=err or subprocess.DEVNULL, text=True, env=env)

@@ -10,7 +10,7 @@ import logging
 import threading
 
 from services.core.bus import router
-from services.core.runtime import announce_ready, configure_logging, stop_on_signals
+from services.core.runtime import announce_ready, configure_logging, die_with_parent, stop_on_signals
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -20,6 +20,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--log-level", default="INFO")
     args = parser.parse_args(argv)
+    die_with_parent()
     configure_logging(args.log_level)
     listen = args.listen or ["tcp/0.0.0.0:7447"]
     stop = threading.Event()

@@ -19,10 +19,16 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from services.core.bus import Bus, BusConfig, free_tcp_port, router
+from services.core.config import ConfigError, load_config
+from services.core.runtime import child_env, writable_dir
+from services.recorder.config import RecorderConfig
 from services.session.config import SessionConfig
 from services.session.session import Session, SessionError, SessionResult, summary
+from services.teleop.config import TeleopConfig
+from sim.config import SimConfig
 
 MODULES = {"recorder": "services.recorder", "sim": "sim", "teleop": "services.teleop"}  # service -> module
+SERVICE_CONFIGS = {"recorder": RecorderConfig, "sim": SimConfig, "teleop": TeleopConfig}
 
 
 class CollectError(RuntimeError):
@@ -60,7 +66,19 @@ class LocalStack:
     def bus_config(self) -> BusConfig:
         return BusConfig(mode="client", connect=[self.endpoint])
 
+    def check(self) -> None:
+        """Every service's config as it will start, loaded here first: a wrong --set is one error, not a
+        service that dies at start-up (raises ConfigError)."""
+        for name, model in SERVICE_CONFIGS.items():
+            load_config(model, self.config, ["bus.mode=client", *self.overrides.get(name, [])], section=name)
+        unknown = sorted(set(self.overrides) - set(MODULES))
+        if unknown:
+            raise ConfigError(
+                f"--set {unknown[0]}.*: no service {unknown[0]!r} in this session (services: {', '.join(MODULES)})"
+            )
+
     def __enter__(self) -> LocalStack:
+        self.check()
         self.log_dir.mkdir(parents=True, exist_ok=True)
         self._router = router([self.endpoint])
         try:
@@ -77,7 +95,7 @@ class LocalStack:
         for item in ["bus.mode=client", f"bus.connect=[{self.endpoint}]", *self.overrides.get(name, [])]:
             cmd += ["--set", item]
         log_path = self.log_dir / f"{name}.log"
-        env = dict(os.environ, MUJOCO_GL=os.environ.get("MUJOCO_GL", "egl"), PYTHONUNBUFFERED="1")
+        env = child_env(dict(os.environ, MUJOCO_GL=os.environ.get("MUJOCO_GL", "egl"), PYTHONUNBUFFERED="1"))
         with open(log_path, "a") as log_file:  # append: a restarted service keeps its history
             log_file.write(f"--- {time.strftime('%Y-%m-%d %H:%M:%S')} {' '.join(cmd)}\n")
             log_file.flush()
@@ -159,16 +177,17 @@ def collect(
     extra: dict[str, list[str]] | None = None,
     progress=print,
 ) -> SessionResult:
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = writable_dir(out, "--out")
     sim = [f"rig={rig}", f"task={task}", f"realtime={str(realtime).lower()}", f"control_hz={control_hz}"]
     if size:
         sim += [f"width={size}", f"height={size}"]
     overrides = {"sim": sim, "recorder": [f"out_dir={out}"], "teleop": []}
     for name, items in (extra or {}).items():
         overrides.setdefault(name, []).extend(items)
+    stack = LocalStack(out, config, overrides)
+    stack.check()  # a wrong --set is one error before anything starts
     progress(f"starting sim ({task}, rig {rig}), teleop (scripted) and recorder -> {out}")
-    with LocalStack(out, config, overrides) as stack:
+    with stack:
         progress(f"services ready on {stack.endpoint}; logs in {stack.log_dir}")
         cfg = SessionConfig(
             bus=stack.bus_config(),

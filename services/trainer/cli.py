@@ -18,6 +18,7 @@ from pathlib import Path
 
 def _train(args: argparse.Namespace) -> int:
     from services.core.config import ConfigError
+    from services.core.runtime import OutputError, writable_dir
     from services.policy.checkpoint import CheckpointError
     from services.trainer.config import load_train_config
     from services.trainer.train import TrainingError, dist_env, train
@@ -40,8 +41,9 @@ def _train(args: argparse.Namespace) -> int:
         overrides.append("progress=false")
     try:
         cfg = load_train_config(args.config, [*overrides, *args.set])
+        writable_dir(cfg.out, "--out")  # before the dataset is opened and the model built
         result = train(cfg)
-    except (ConfigError, TrainingError, CheckpointError) as exc:
+    except (ConfigError, TrainingError, CheckpointError, OutputError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

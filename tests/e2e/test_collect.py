@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import signal
 import subprocess
 import sys
 import time
@@ -106,6 +107,29 @@ def test_bad_arguments_fail_fast_with_one_line(tmp_path):
     assert "error: unknown rig 'six15'" in proc.stderr and "Traceback" not in proc.stderr
     proc = run_collect(tmp_path, "--task", "stack", timeout=60)
     assert proc.returncode == 2 and "unknown task 'stack'" in proc.stderr
+    blocker = tmp_path / "a-file"
+    blocker.write_text("")
+    for args, text in [
+        (["--episodes", "-1"], "--episodes must be at least 1"),
+        (["--episodes", "0"], "--episodes must be at least 1"),
+        (["--size", "0"], "--size must be 16..4096"),
+        (["--set", "nonexistent.field=1"], "no service 'nonexistent'"),
+        (["--set", "sim.nonexistent=1"], "nonexistent: Extra inputs are not permitted"),
+        (["--set", "recorder.queue_size=0"], "queue_size"),
+        (["--seed", "99990"], "--seed: collection seeds stay below 100000"),
+    ]:
+        proc = run_collect(tmp_path / "out", *args, timeout=60)
+        lines = proc.stderr.strip().splitlines()
+        assert proc.returncode == 2 and len(lines) == 1 and lines[0].startswith("error: ") and text in lines[0], args
+        assert "starting sim" not in proc.stdout  # refused before any service starts
+    proc = subprocess.run(
+        [sys.executable, "-m", "services.cli", "collect", "--out", str(blocker / "sub")],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert proc.returncode == 2 and proc.stderr.strip() == f"error: --out {blocker / 'sub'}: Not a directory"
 
 
 def test_sigterm_mid_session_keeps_the_partial_episode_and_stops_every_service(tmp_path):
@@ -158,3 +182,61 @@ def test_sigterm_mid_session_keeps_the_partial_episode_and_stops_every_service(t
     # the episode under way when the signal came is kept, closed and flagged, never silently lost
     assert len(cut) == 1 and cut[0].flags, [(e.path.name, e.metadata["success"], e.flags) for e in episodes]
     assert cut[0].flags[0].startswith("interrupted: "), cut[0].flags  # says why, whatever the pacing
+
+
+def _start_collect(tmp_path):
+    import psutil
+
+    cmd = [
+        sys.executable,
+        "-m",
+        "services.cli",
+        "collect",
+        "--task",
+        "can",
+        "--episodes",
+        "20",
+        "--rig",
+        "three15",
+        "--out",
+        str(tmp_path),
+        "--fast",
+    ]
+    proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    for line in proc.stdout:
+        if line.startswith("[1/20]"):
+            break
+    else:
+        raise AssertionError(f"no episode recorded: {proc.stderr.read()}")
+    children = psutil.Process(proc.pid).children()
+    log = tmp_path / "logs" / "recorder.log"
+    deadline = time.monotonic() + 60
+    while log.read_text().count(" started: ") < 2:  # the second episode is being recorded
+        assert time.monotonic() < deadline, log.read_text()[-2000:]
+        time.sleep(0.05)
+    return proc, children
+
+
+def test_killing_collect_with_sigkill_takes_every_service_with_it_and_closes_the_episode(tmp_path):
+    import psutil
+
+    proc, children = _start_collect(tmp_path)
+    assert {c.cmdline()[2] for c in children} >= {"sim", "services.teleop", "services.recorder"}
+    proc.kill()  # kill -9: no handler runs in the parent
+    proc.wait(timeout=30)
+    gone, alive = psutil.wait_procs(children, timeout=30)
+    assert not alive, f"services left running: {[c.cmdline() for c in alive]}"
+    assert not list(tmp_path.glob("*.part")), "an episode was left unclosed"  # the recorder closed it on SIGTERM
+    cut = [read_episode(f) for f in tmp_path.glob("*.mcap") if not read_episode(f).metadata["success"]]
+    assert len(cut) == 1 and any(f.startswith("interrupted") for f in cut[0].flags)
+
+
+def test_sighup_to_collect_stops_like_sigterm(tmp_path):
+    import psutil
+
+    proc, children = _start_collect(tmp_path)
+    proc.send_signal(signal.SIGHUP)  # the terminal was closed
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130 and "interrupted (SIGHUP)" in err, err
+    gone, alive = psutil.wait_procs(children, timeout=30)
+    assert not alive and not list(tmp_path.glob("*.part"))

@@ -351,3 +351,11 @@ def test_gpu_training_uses_bf16_and_channels_last(sim_dataset, tmp_path):
     obs = torch.rand(1, 2, 3, 32, 32, device="cuda") * 2 - 1
     chunk = sample(loaded.policy, obs, torch.zeros(1, 2, 10, device="cuda"))
     assert chunk.shape == (1, 16, 7) and torch.isfinite(chunk).all()
+
+
+def test_an_unwritable_out_is_one_error_line_before_training(sim_dataset, tmp_path, capsys):
+    blocker = tmp_path / "a-file"
+    blocker.write_text("")
+    rc = viewscale(["train", "--data", str(sim_dataset), "--out", str(blocker / "run"), "--steps", "1"])
+    err = capsys.readouterr().err
+    assert rc == 2 and err.strip() == f"error: --out {blocker / 'run'}: Not a directory"
