@@ -22,7 +22,6 @@ first N episodes from one camera with the outcome marked.
 from __future__ import annotations
 
 import json
-import math
 import statistics
 import subprocess
 import sys
@@ -33,6 +32,8 @@ from pathlib import Path
 from typing import Any
 
 from services.core.bus import Bus
+from services.core.runtime import child_env
+from services.core.stats import percentile, wilson
 from services.policy.checkpoint import read_info, resolve_checkpoint
 from services.session.collect import CollectError, LocalStack
 from services.session.config import DEFAULT_MAX_TICKS, EVAL_SEEDS, SessionConfig
@@ -44,24 +45,6 @@ ROOT = Path(__file__).resolve().parents[2]
 
 class EvalError(RuntimeError):
     """The evaluation could not run; the message says why."""
-
-
-def wilson(k: int, n: int, z: float = 1.96) -> tuple[float, float]:
-    """Wilson score interval of k successes in n trials (95 % by default)."""
-    if n == 0:
-        return 0.0, 1.0
-    p = k / n
-    denom = 1 + z * z / n
-    centre = (p + z * z / (2 * n)) / denom
-    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / denom
-    return max(0.0, centre - half), min(1.0, centre + half)
-
-
-def percentile(xs: list[float], q: float) -> float | None:
-    if not xs:
-        return None
-    xs = sorted(xs)
-    return xs[min(len(xs) - 1, int(math.ceil(q * len(xs))) - 1)] if q > 0 else xs[0]
 
 
 @dataclass
@@ -146,7 +129,9 @@ class PolicyServer:
     def __enter__(self) -> PolicyServer:
         self.log_path.parent.mkdir(parents=True, exist_ok=True)
         with open(self.log_path, "a") as log:
-            self.proc = subprocess.Popen(self.cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=log, text=True)
+            self.proc = subprocess.Popen(
+                self.cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=log, text=True, env=child_env()
+            )
         deadline = time.monotonic() + self.ready_timeout_s
         for line in self.proc.stdout:
             if line.startswith("ready policy "):

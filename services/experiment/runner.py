@@ -1,0 +1,362 @@
+"""``viewscale experiment q1|q2|q3|q4|q5 --task can --scale tiny|paper``: the paper's questions.
+
+Each question is a config under ``experiments/`` (``q1.yaml`` ...): a grid of cells (training
+source -- a rig and its views --, action space, number of demos N, evaluation views), each of
+which is collect -> (re-render) -> dataset build -> train -> eval. Scales (``experiments/
+scales.yaml``) set the preset, training steps, seeds, frame size and evaluation episodes.
+
+Every stage is cached under ``runs/experiments/cache/<stage>-<hash>/``, the hash taken over its
+config and the hashes of its inputs; a stage's ``stage.json`` is written last, when it is
+complete. A second run skips complete stages; after an interruption a stage starts again (a
+training resumes from its last checkpoint, as ``viewscale train`` does). One set of expert
+demonstrations serves every cell of a task: N demos are the first N episodes, other rigs are
+re-renderings of the same demos (``viewscale rerender``). Results go to
+``runs/experiments/<question>-<task>-<scale>/``: ``results.json`` (every cell, seeds, versions),
+``table.md`` and ``success_vs_n.png`` (success rate against N per training source, Wilson 95%
+intervals).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import importlib.metadata as md
+import itertools
+import json
+import shutil
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from services.core.config import ConfigError, read_yaml
+from services.core.rig import load_rig
+from services.core.runtime import child_env
+from services.experiment.report import write_plot, write_table
+
+ROOT = Path(__file__).resolve().parents[2]
+EXPERIMENTS = ROOT / "experiments"
+VERSION = 1  # bump when a stage's output changes meaning: every cache key changes with it
+
+
+class ExperimentError(RuntimeError):
+    """An experiment could not run; the message names the stage."""
+
+
+def stage_hash(key: dict[str, Any]) -> str:
+    return hashlib.sha256(json.dumps({"v": VERSION, **key}, sort_keys=True).encode()).hexdigest()[:12]
+
+
+@dataclass
+class Stage:
+    """One cached stage: ``dir`` holds its output, ``stage.json`` marks it complete."""
+
+    kind: str
+    key: dict[str, Any]
+    root: Path
+
+    @property
+    def hash(self) -> str:
+        return stage_hash({"kind": self.kind, **self.key})
+
+    @property
+    def dir(self) -> Path:
+        return self.root / f"{self.kind}-{self.hash}"
+
+    @property
+    def done(self) -> bool:
+        return (self.dir / "stage.json").is_file()
+
+    def finish(self, **facts: Any) -> None:
+        tmp = self.dir / "stage.json.tmp"
+        tmp.write_text(json.dumps({"kind": self.kind, "key": self.key, "hash": self.hash, **facts}, indent=2))
+        tmp.replace(self.dir / "stage.json")
+
+    def facts(self) -> dict[str, Any]:
+        return json.loads((self.dir / "stage.json").read_text())
+
+
+def viewscale(args: list[str], log: Path) -> None:
+    """One ``viewscale`` command as a process (as a user would run it); its output goes to ``log``."""
+    log.parent.mkdir(parents=True, exist_ok=True)
+    with open(log, "a") as f:
+        f.write(f"$ viewscale {' '.join(args)}\n")
+        f.flush()
+        rc = subprocess.run(
+            [sys.executable, "-m", "services.cli", *args], cwd=ROOT, stdout=f, stderr=f, env=child_env()
+        ).returncode
+    if rc != 0:
+        tail = "\n".join(log.read_text(errors="replace").splitlines()[-12:])
+        raise ExperimentError(f"viewscale {args[0]} failed (exit {rc}); the end of {log}:\n{tail}")
+
+
+def load_question(name: str) -> dict[str, Any]:
+    path = EXPERIMENTS / f"{name.lower()}.yaml"
+    if not path.is_file():
+        have = ", ".join(sorted(p.stem for p in EXPERIMENTS.glob("q*.yaml")))
+        raise ConfigError(f"unknown experiment {name!r}; experiments: {have}")
+    return read_yaml(path)
+
+
+def load_scale(name: str) -> dict[str, Any]:
+    scales = read_yaml(EXPERIMENTS / "scales.yaml")
+    if name not in scales:
+        raise ConfigError(f"unknown scale {name!r}; scales: {', '.join(scales)}")
+    return scales[name]
+
+
+def cells(q: dict[str, Any], scale: dict[str, Any]) -> list[dict[str, Any]]:
+    """The grid's cells: every combination of its axes, once per training seed of the scale."""
+    grid = dict(q["grid"])
+    if "N" in scale:  # a scale may shrink the demo counts (smoke)
+        grid["N"] = scale["N"]
+    axes = ["train", "space", "N", "eval_views"]
+    values = [grid[a] for a in axes]
+    out = []
+    for combo in itertools.product(*values, scale["seeds"]):
+        cell = dict(zip([*axes, "seed"], combo))
+        cell["N"] = int(cell["N"])
+        out.append(cell)
+    return out
+
+
+class Runner:
+    def __init__(self, question: str, task: str, scale: str, root: Path, progress: Callable[[str], None] = print):
+        self.name = question.lower()
+        self.q = load_question(self.name)
+        self.scale_name = scale
+        self.scale = load_scale(scale)
+        self.task = task
+        self.root = Path(root)
+        self.cache = self.root / "cache"
+        self.out = self.root / f"{self.name}-{task}-{scale}"
+        self.progress = progress
+        self.cells = cells(self.q, self.scale)
+        if not self.cells:
+            raise ConfigError(f"{self.name}: the grid has no cells")
+
+    # -- stages ---------------------------------------------------------------------------------
+    def demos(self) -> Stage:
+        n_max = max(c["N"] for c in self.cells)
+        rig = self.q.get("demos", {}).get("rig", "five15")
+        st = Stage("demos", {"task": self.task, "rig": rig, "N": n_max, "size": self.scale["size"]}, self.cache)
+        if st.done:
+            return st
+        shutil.rmtree(st.dir, ignore_errors=True)  # an interrupted collection starts over
+        st.dir.mkdir(parents=True)
+        self.progress(f"collecting {n_max} {self.task} demos with {rig} -> {st.dir}")
+        viewscale(
+            [
+                "collect",
+                "--task",
+                self.task,
+                "--episodes",
+                str(n_max),
+                "--rig",
+                rig,
+                "--size",
+                str(self.scale["size"]),
+                "--fast",
+                "--out",
+                str(st.dir / "raw"),
+            ],
+            st.dir / "log.txt",
+        )
+        st.finish(episodes=len(list((st.dir / "raw").glob("*.mcap"))))
+        return st
+
+    def source(self, rig: str) -> tuple[Stage, Path]:
+        """The demos as seen by ``rig``: the collection itself, or a re-rendering of it."""
+        demos = self.demos()
+        if rig == demos.key["rig"]:
+            return demos, demos.dir / "raw"
+        st = Stage("rerender", {"demos": demos.hash, "rig": rig}, self.cache)
+        if not st.done:
+            shutil.rmtree(st.dir, ignore_errors=True)
+            st.dir.mkdir(parents=True)
+            self.progress(f"re-rendering the demos through {rig} -> {st.dir}")
+            viewscale(
+                ["rerender", "--raw", str(demos.dir / "raw"), "--rig", rig, "--out", str(st.dir / "raw")],
+                st.dir / "log.txt",
+            )
+            st.finish()
+        return st, st.dir / "raw"
+
+    def dataset(self, cell: dict[str, Any]) -> Stage:
+        src, raw = self.source(cell["train"]["rig"])
+        views = list(cell["train"]["views"])
+        key = {"source": src.hash, "N": cell["N"], "views": views, "space": cell["space"], "size": self.scale["size"]}
+        st = Stage("dataset", key, self.cache)
+        if st.done:
+            return st
+        files = sorted(raw.glob("*.mcap"))[: cell["N"]]
+        if len(files) < cell["N"]:
+            raise ExperimentError(f"{len(files)} demos where the cell needs {cell['N']}")
+        st.dir.mkdir(parents=True, exist_ok=True)
+        self.progress(f"building {cell['N']} x {len(views)} {cell['space']}-space pseudo-demos -> {st.dir}")
+        size = self.scale["size"]
+        viewscale(
+            [
+                "dataset",
+                "build",
+                "--raw",
+                *map(str, files),
+                "--views",
+                ",".join(views),
+                "--space",
+                cell["space"],
+                "--image-size",
+                f"{size}x{size}",
+                "--out",
+                str(st.dir / "ds"),
+            ],
+            st.dir / "log.txt",
+        )
+        st.finish()
+        return st
+
+    def training(self, cell: dict[str, Any]) -> Stage:
+        ds = self.dataset(cell)
+        s = self.scale
+        key = {
+            "dataset": ds.hash,
+            "preset": s["preset"],
+            "steps": s["steps"],
+            "seed": cell["seed"],
+            "set": list(s.get("train_set", [])),
+        }
+        st = Stage("train", key, self.cache)
+        if st.done:
+            return st
+        st.dir.mkdir(parents=True, exist_ok=True)  # kept: an interrupted training resumes from its checkpoint
+        self.progress(f"training {s['preset']} for {s['steps']} steps (seed {cell['seed']}) -> {st.dir}")
+        t0 = time.monotonic()
+        args = [
+            "train",
+            "--data",
+            str(ds.dir / "ds"),
+            "--preset",
+            s["preset"],
+            "--steps",
+            str(s["steps"]),
+            "--seed",
+            str(cell["seed"]),
+            "--out",
+            str(st.dir / "run"),
+            "--no-progress",
+        ]
+        for item in s.get("train_set", []):
+            args += ["--set", item]
+        viewscale(args, st.dir / "log.txt")
+        st.finish(wall_s=round(time.monotonic() - t0, 1))
+        return st
+
+    def evaluation(self, cell: dict[str, Any]) -> Stage:
+        tr = self.training(cell)
+        views = list(cell["eval_views"])
+        key = {
+            "train": tr.hash,
+            "task": self.task,
+            "views": views,
+            "episodes": self.scale["episodes"],
+            "rig": cell["train"]["rig"],
+        }
+        st = Stage("eval", key, self.cache)
+        if st.done:
+            return st
+        shutil.rmtree(st.dir, ignore_errors=True)  # an interrupted evaluation runs again from its first episode
+        st.dir.mkdir(parents=True)
+        self.progress(f"evaluating from {','.join(views)}: {self.scale['episodes']} episodes -> {st.dir}")
+        t0 = time.monotonic()
+        rig = self.q.get("demos", {}).get("rig", "five15")  # the scene the robot acts in: the demos' rig
+        viewscale(
+            [
+                "eval",
+                "--checkpoint",
+                str(tr.dir / "run"),
+                "--task",
+                self.task,
+                "--episodes",
+                str(self.scale["episodes"]),
+                "--views",
+                ",".join(views),
+                "--rig",
+                eval_rig(cell, rig),
+                "--out",
+                str(st.dir / "eval"),
+            ],
+            st.dir / "log.txt",
+        )
+        st.finish(wall_s=round(time.monotonic() - t0, 1))
+        return st
+
+    # -- the whole question -----------------------------------------------------------------------
+    def run(self) -> dict[str, Any]:
+        t0 = time.monotonic()
+        self.out.mkdir(parents=True, exist_ok=True)
+        rows = []
+        for i, cell in enumerate(self.cells, 1):
+            self.progress(f"[{i}/{len(self.cells)}] {describe(cell)}")
+            ev = self.evaluation(cell)
+            rep = json.loads((ev.dir / "eval" / "report.json").read_text())["summary"]
+            tr = self.training(cell)
+            rows.append(
+                {
+                    **cell,
+                    "successes": rep["successes"],
+                    "episodes": rep["episodes"],
+                    "success_rate": rep["success_rate"],
+                    "wilson95": rep["wilson95"],
+                    "train_wall_s": tr.facts().get("wall_s"),
+                    "eval_wall_s": ev.facts().get("wall_s"),
+                    "stages": {"train": tr.hash, "eval": ev.hash},
+                }
+            )
+            self.progress(f"    {rep['successes']}/{rep['episodes']} successful")
+        results = {
+            "question": self.q.get("question", self.name),
+            "title": self.q.get("title", ""),
+            "task": self.task,
+            "scale": self.scale_name,
+            "scale_settings": self.scale,
+            "versions": versions(),
+            "cells": rows,
+            "wall_s": round(time.monotonic() - t0, 1),
+        }
+        (self.out / "results.json").write_text(json.dumps(results, indent=2) + "\n")
+        write_table(results, self.out / "table.md")
+        write_plot(results, self.out / "success_vs_n.png")
+        self.progress(f"results {self.out / 'table.md'}, plot {self.out / 'success_vs_n.png'}")
+        return results
+
+
+def eval_rig(cell: dict[str, Any], demos_rig: str) -> str:
+    """The rig the evaluation renders: the training rig when it has every evaluation view, else the demos'."""
+    train_rig = cell["train"]["rig"]
+    return train_rig if set(cell["eval_views"]) <= set(load_rig(train_rig).names) else demos_rig
+
+
+def describe(cell: dict[str, Any]) -> str:
+    train = cell["train"]
+    return (
+        f"train {train.get('label') or ','.join(train['views'])} ({train['rig']}), {cell['space']} space, "
+        f"N={cell['N']}, seed {cell['seed']}; eval from {','.join(cell['eval_views'])}"
+    )
+
+
+def versions() -> dict[str, str]:
+    out = {}
+    for pkg in ("viewscale", "torch", "mujoco", "diffusers", "numpy"):
+        try:
+            out[pkg] = md.version(pkg)
+        except md.PackageNotFoundError:
+            pass
+    try:
+        out["git"] = subprocess.run(
+            ["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True, timeout=10
+        ).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        pass
+    return out

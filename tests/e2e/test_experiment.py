@@ -1,0 +1,75 @@
+"""The experiment runner: a question end to end at the smoke scale, cached stages skipped on a second
+run, and a run killed mid-way resumes without redoing what was finished."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def experiment(root: Path, *extra: str) -> list[str]:
+    return [
+        sys.executable,
+        "-m",
+        "services.cli",
+        "experiment",
+        "q5",
+        "--task",
+        "lift",
+        "--scale",
+        "smoke",
+        "--root",
+        str(root),
+        *extra,
+    ]
+
+
+def test_a_question_runs_caches_its_stages_and_resumes_after_a_kill(tmp_path):
+    root = tmp_path / "exp"
+    proc = subprocess.Popen(experiment(root), cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    seen = []
+    for line in proc.stdout:  # kill it in the middle of its first evaluation
+        seen.append(line)
+        if line.lstrip().startswith("evaluating from"):
+            time.sleep(2.0)
+            proc.send_signal(signal.SIGKILL)
+            break
+    proc.wait(timeout=60)
+    assert any("collecting 2 lift demos" in s for s in seen) and any(s.lstrip().startswith("training") for s in seen)
+    assert not (root / "q5-lift-smoke" / "results.json").exists()
+
+    resumed = subprocess.run(experiment(root), cwd=ROOT, capture_output=True, text=True, timeout=900)
+    assert resumed.returncode == 0, resumed.stdout[-3000:] + resumed.stderr[-3000:]
+    out = resumed.stdout
+    assert "collecting" not in out and "building" not in out and "training" not in out  # finished stages kept
+    assert out.count("evaluating from") == 3  # the interrupted evaluation and the two not yet run
+    results = json.loads((root / "q5-lift-smoke" / "results.json").read_text())
+    cells = results["cells"]
+    assert [c["eval_views"] for c in cells] == [["F"], ["F", "FL", "FR"], ["F", "FL", "FR", "FU", "FD"]]
+    assert len({c["stages"]["train"] for c in cells}) == 1  # one checkpoint serves every evaluation
+    assert all(c["episodes"] == 1 for c in cells) and results["versions"]["torch"]
+    table = (root / "q5-lift-smoke" / "table.md").read_text()
+    assert table.startswith("# Q5") and table.count("| five15 |") == 3
+    assert (root / "q5-lift-smoke" / "success_vs_n.png").stat().st_size > 5000
+
+    again = subprocess.run(experiment(root), cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert again.returncode == 0 and "evaluating from" not in again.stdout  # everything cached
+    assert json.loads((root / "q5-lift-smoke" / "results.json").read_text())["cells"] == cells
+
+
+def test_an_unknown_question_or_scale_is_one_line(tmp_path):
+    for args, text in [(["q9"], "unknown experiment 'q9'"), (["q1", "--scale", "huge"], "unknown scale 'huge'")]:
+        proc = subprocess.run(
+            [sys.executable, "-m", "services.cli", "experiment", *args, "--root", str(tmp_path)],
+            cwd=ROOT,
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
+        assert proc.returncode == 2 and text in proc.stderr and "Traceback" not in proc.stderr
