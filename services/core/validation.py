@@ -37,6 +37,8 @@ from services.pb.episode_pb2 import EpisodeCommand, EpisodeRequest, SimCommand, 
 from services.pb.sensors_pb2 import RobotState, TaskState
 
 MAX_STRING = 256  # any string field of a session message (ids, names, frame ids)
+MAX_TEXT = 4096  # our own human-readable text: an episode's flags, a reply's error, a path
+TEXT_FIELDS = {"flags", "error", "path", "rerendered_from"}
 MAX_REPEATED = 64  # joints, objects, limits ...
 MAX_POSITION_M = 10.0  # a pose farther than this from the base is not of this robot's workspace
 MAX_STEP_M = 1.0  # one tick's translation
@@ -139,8 +141,9 @@ def jpeg_dimensions(data: bytes) -> tuple[int, int]:
 def check(msg: Message, ctx: Context | None = None, decode_images: bool = True) -> None:
     """Raise ``Invalid`` unless ``msg``'s values make sense for its type (and ``ctx``)."""
     for name, value in _strings(msg):
-        if len(value) > MAX_STRING:
-            raise Invalid("oversized field", f"{name} holds {len(value)} characters (at most {MAX_STRING})")
+        limit = MAX_TEXT if name.rsplit(".", 1)[-1] in TEXT_FIELDS else MAX_STRING
+        if len(value) > limit:
+            raise Invalid("oversized field", f"{name} holds {len(value)} characters (at most {limit})")
     if isinstance(msg, RobotState):
         finite(msg.eef_pos, 3, "eef_pos", MAX_POSITION_M)
         unit_quaternion(msg.eef_quat_wxyz, "eef_quat_wxyz")

@@ -28,6 +28,7 @@ from services.core import topics
 from services.core.bus import Bus, Received
 from services.core.clock import Rate, now_ns
 from services.core.robot_types import EefDelta, action_from_msg, action_msg, state_msg
+from services.core.validation import check
 from services.pb.common_pb2 import Header
 from services.pb.control_pb2 import AppliedAction, EefCommand
 from services.robot.safety import Safety
@@ -75,6 +76,7 @@ class ControlLoop:
         # Validate on arrival: a bad command (a payload of another schema can parse as an
         # EefCommand) is counted and dropped, and cannot displace the tick's good command.
         try:
+            check(msg)  # the same checks as the recorder's: bounded steps, finite values, bounded strings
             delta = action_from_msg(msg.action)
         except ValueError as exc:
             self.rejected["invalid"] += 1

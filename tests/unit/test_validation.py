@@ -162,3 +162,16 @@ def test_control_requests_of_another_type_or_with_absurd_values_are_refused():
         check_episode_request(EpisodeRequest(command=EpisodeCommand.EPISODE_COMMAND_START, control_hz=NAN), 1000)
     with pytest.raises(Invalid, match="unknown task"):
         check_sim_request(SimControlRequest(command=SimCommand.SIM_COMMAND_RESET, task="pour"), ("lift", "can"))
+
+
+def test_our_own_text_fields_may_be_long_but_ids_may_not():
+    from services.core.validation import check
+    from services.pb.episode_pb2 import EpisodeMeta
+
+    long_flag = "malformed payloads (" + ", ".join(f"/camera/C{i}/image: 300" for i in range(12)) + ")"
+    assert 256 < len(long_flag) < 4096
+    check(EpisodeMeta(episode_id="lift-five15-0001", flags=[long_flag]))
+    with pytest.raises(Invalid, match="flags"):
+        check(EpisodeMeta(episode_id="lift-five15-0001", flags=["x" * 5000]))
+    with pytest.raises(Invalid, match="episode_id holds 300"):
+        check(EpisodeMeta(episode_id="x" * 300, flags=[long_flag]))
