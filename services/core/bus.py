@@ -3,6 +3,12 @@
 Every service opens one ``Bus`` from a ``BusConfig`` and talks through it. Data we record is
 published with congestion control BLOCK (zenoh's default DROP loses samples under bursts); the
 recorder, not the transport, decides what to drop, and counts it.
+
+Authentication is opt-in: with ``user`` and ``password_file`` a client authenticates to the router
+with zenoh's user/password scheme; a router with ``users_file`` refuses every session whose user and
+password are not in it, and with ``acl_file`` lets each user send and receive only what its rules
+allow (deploy/zenoh/router-acl.json5; deploy/README.md). Without them nothing changes: loopback
+sessions and tests run unauthenticated.
 """
 
 from __future__ import annotations
@@ -14,13 +20,14 @@ import time
 from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Literal
 
 import zenoh
 from google.protobuf.message import DecodeError, Message
-from pydantic import Field
+from pydantic import Field, model_validator
 
-from services.core.config import Frozen
+from services.core.config import ConfigError, Frozen
 from services.core.topics import Topic
 
 log = logging.getLogger(__name__)
@@ -33,6 +40,29 @@ class BusConfig(Frozen):
     multicast_scouting: bool = False  # off by default: sessions find each other only via `connect`
     namespace: str = "vs"  # prefix of every key expression, so sessions can share a network
     connect_timeout_s: float = 30.0  # keep retrying `connect` endpoints this long at start-up (router still booting)
+    user: str | None = None  # authenticate to the router as this user (zenoh user/password); None: no authentication
+    password_file: Path | None = None  # file whose first line is `user`'s password (a compose secret); never logged
+    acl_file: Path | None = None  # router only: zenoh JSON5 with the `access_control` it enforces, per user
+    users_file: Path | None = None  # router only: `user:password` lines it accepts; everyone else is refused
+
+    @model_validator(mode="after")
+    def _check_auth(self) -> BusConfig:
+        if (self.user is None) != (self.password_file is None):
+            raise ValueError("bus.user and bus.password_file go together (a user authenticates with its password)")
+        if self.user is not None:
+            if not self.user or ":" in self.user or self.user != self.user.strip():
+                raise ValueError(f"bus.user {self.user!r} must be a non-empty name without ':' or spaces around it")
+            if self.mode != "client":
+                # A peer also accepts links from other peers, which would bypass the router's access control.
+                raise ValueError(
+                    f"bus.user needs bus.mode=client, not {self.mode!r}: "
+                    "authenticated services talk only through the router"
+                )
+        if (self.acl_file is not None or self.users_file is not None) and self.mode != "router":
+            raise ValueError("bus.acl_file and bus.users_file configure a router (bus.mode=router)")
+        if self.acl_file is not None and self.users_file is None:
+            raise ValueError("bus.acl_file needs bus.users_file: its rules name users that must authenticate")
+        return self
 
 
 def free_tcp_port() -> int:
@@ -42,8 +72,62 @@ def free_tcp_port() -> int:
         return sock.getsockname()[1]
 
 
+def read_password(path: Path, user: str) -> str:
+    """The first line of ``path``: ``user``'s password. A ConfigError names the file, never the password."""
+    what = f"the password file of Zenoh user {user!r}"
+    try:
+        lines = Path(path).read_text().splitlines()
+    except FileNotFoundError:
+        raise ConfigError(f"{what}, {path}, does not exist (`viewscale credentials` writes one per service)") from None
+    except OSError as exc:
+        raise ConfigError(f"cannot read {what}, {path}: {exc.strerror}") from None
+    password = lines[0].strip() if lines else ""
+    if not password:
+        raise ConfigError(f"{what}, {path}, is empty: its first line must be the password")
+    return password
+
+
+def read_users(path: Path) -> list[str]:
+    """The user names of a router's ``user:password`` file, checked line by line as zenoh reads it."""
+    try:
+        lines = Path(path).read_text().splitlines()
+    except FileNotFoundError:
+        raise ConfigError(
+            f"the router's users file {path} does not exist (`viewscale credentials` writes it)"
+        ) from None
+    except OSError as exc:
+        raise ConfigError(f"cannot read the router's users file {path}: {exc.strerror}") from None
+    users = []
+    for number, line in enumerate(lines, 1):
+        if not line.strip():
+            continue
+        user, sep, password = line.partition(":")
+        if not sep or not user or not password:
+            raise ConfigError(f"{path}:{number}: expected user:password")
+        users.append(user)
+    if not users:
+        raise ConfigError(f"the router's users file {path} names no user: every session would be refused")
+    return users
+
+
+def _router_base(cfg: BusConfig) -> zenoh.Config:
+    """A router's config: its access control file (when given) with our settings over it."""
+    if cfg.acl_file is None:
+        return zenoh.Config()
+    path = Path(cfg.acl_file)
+    if not path.is_file():
+        raise ConfigError(f"the router's access control file {path} does not exist")
+    try:
+        conf = zenoh.Config.from_file(str(path))
+    except zenoh.ZError as exc:
+        raise ConfigError(f"the router's access control file {path} is not a valid zenoh config: {exc}") from None
+    if json.loads(conf.get_json("access_control/enabled")) is not True:
+        raise ConfigError(f"{path} does not enable access control (access_control.enabled: true)")
+    return conf
+
+
 def _zenoh_config(cfg: BusConfig) -> zenoh.Config:
-    conf = zenoh.Config()
+    conf = _router_base(cfg) if cfg.mode == "router" else zenoh.Config()
     conf.insert_json5("mode", json.dumps(cfg.mode))
     # A peer with no explicit listen endpoint would listen on every interface; stay local.
     listen = cfg.listen or (["tcp/127.0.0.1:0"] if cfg.mode == "peer" else [])
@@ -53,7 +137,47 @@ def _zenoh_config(cfg: BusConfig) -> zenoh.Config:
         conf.insert_json5("connect/timeout_ms", json.dumps(int(cfg.connect_timeout_s * 1000)))
         conf.insert_json5("connect/retry", "{period_init_ms: 100, period_max_ms: 1000, period_increase_factor: 2}")
     conf.insert_json5("scouting/multicast/enabled", json.dumps(cfg.multicast_scouting))
+    if cfg.user is not None:
+        conf.insert_json5("transport/auth/usrpwd/user", json.dumps(cfg.user))
+        conf.insert_json5("transport/auth/usrpwd/password", json.dumps(read_password(cfg.password_file, cfg.user)))
+    if cfg.users_file is not None:
+        read_users(cfg.users_file)  # zenoh's own error names neither the file nor the line
+        conf.insert_json5("transport/auth/usrpwd/dictionary_file", json.dumps(str(Path(cfg.users_file).resolve())))
     return conf
+
+
+def _accepts_tcp(endpoints: list[str], timeout: float = 1.0) -> bool:
+    """Whether any ``tcp/host:port`` endpoint accepts a TCP connection (a router that is there)."""
+    for endpoint in endpoints:
+        proto, _, address = endpoint.partition("/")
+        if proto != "tcp":
+            continue
+        host, _, port = address.split("#", 1)[0].split("?", 1)[0].rpartition(":")
+        try:
+            socket.create_connection((host.strip("[]"), int(port)), timeout=timeout).close()
+            return True
+        except (OSError, ValueError):
+            continue
+    return False
+
+
+def _open_error(cfg: BusConfig, exc: Exception) -> ConnectionError:
+    where = ", ".join(cfg.connect) or "(no endpoint)"
+    if cfg.mode == "client" and _accepts_tcp(cfg.connect):
+        # The router is there and still no session: zenoh refuses a failed authentication silently.
+        if cfg.user is not None:
+            return ConnectionError(
+                f"the Zenoh router at {where} refused user {cfg.user!r}: wrong password in "
+                f"{cfg.password_file}, or the user is not in the router's users file"
+            )
+        return ConnectionError(
+            f"the Zenoh router at {where} accepts connections but refused the session within "
+            f"{cfg.connect_timeout_s:.0f}s: it may require a user and password (bus.user, bus.password_file)"
+        )
+    return ConnectionError(
+        f"cannot open a Zenoh {cfg.mode} session to {where} "
+        f"within {cfg.connect_timeout_s:.0f}s (is the router running?): {exc}"
+    )
 
 
 @dataclass(frozen=True)
@@ -86,14 +210,11 @@ class Bus:
 
     def __init__(self, cfg: BusConfig):
         self.cfg = cfg
+        conf = _zenoh_config(cfg)  # ConfigError on a missing or bad credential file
         try:
-            self.session = zenoh.open(_zenoh_config(cfg))
+            self.session = zenoh.open(conf)
         except zenoh.ZError as exc:
-            where = ", ".join(cfg.connect) or "(no endpoint)"
-            raise ConnectionError(
-                f"cannot open a Zenoh {cfg.mode} session to {where} "
-                f"within {cfg.connect_timeout_s:.0f}s (is the router running?): {exc}"
-            ) from exc
+            raise _open_error(cfg, exc) from exc
         self._keep: list[object] = []  # declared entities live as long as the bus
         self.callback_errors: Counter[str] = Counter()  # key -> handler failures (caught, logged, counted)
 
@@ -228,9 +349,21 @@ class Bus:
         self._keep.append(sub)
 
 
-def router(listen: list[str]) -> Bus:
-    """A zenoh router session (what `viewscale router` and local sessions run as the hub)."""
-    return Bus(BusConfig(mode="router", listen=listen))
+def router(listen: list[str], acl_file: Path | None = None, users_file: Path | None = None) -> Bus:
+    """A zenoh router session (what `viewscale router` and local sessions run as the hub); with
+    ``users_file`` it refuses unauthenticated sessions, with ``acl_file`` it enforces those rules."""
+    return Bus(BusConfig(mode="router", listen=listen, acl_file=acl_file, users_file=users_file))
 
 
-__all__ = ["Bus", "BusConfig", "Publisher", "Received", "decode", "free_tcp_port", "router", "DecodeError"]
+__all__ = [
+    "Bus",
+    "BusConfig",
+    "Publisher",
+    "Received",
+    "decode",
+    "free_tcp_port",
+    "read_password",
+    "read_users",
+    "router",
+    "DecodeError",
+]
