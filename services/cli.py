@@ -5,6 +5,7 @@
     viewscale dataset info data/ds
     viewscale train --data data/ds --preset tiny --steps 2000 --out runs/lift-five15-camera
     viewscale router --listen tcp/0.0.0.0:7447
+    viewscale credentials --out deploy/zenoh/secrets
     viewscale episode start --task pour --rig five15 ; viewscale episode stop --success
 
 Errors a user can cause print one ``error:`` line and exit with code 2.
@@ -216,9 +217,16 @@ def _episode(args: argparse.Namespace) -> int:
         success=args.success,
     )
     try:
-        with Bus(BusConfig(mode="client", connect=[args.connect], connect_timeout_s=min(args.timeout, 5.0))) as bus:
+        cfg = BusConfig(
+            mode="client",
+            connect=[args.connect],
+            connect_timeout_s=min(args.timeout, 5.0),
+            user=args.user,
+            password_file=args.password_file,
+        )
+        with Bus(cfg) as bus:
             reply = EpisodeReply.FromString(bus.query(topics.EPISODE_CONTROL, req.SerializeToString(), args.timeout))
-    except (TimeoutError, RuntimeError, ConnectionError) as exc:
+    except (TimeoutError, RuntimeError, ConnectionError, ValueError) as exc:  # ValueError: config, credentials
         print(f"error: {exc}", file=sys.stderr)
         return 2
     if not reply.ok:
@@ -238,7 +246,25 @@ def _episode(args: argparse.Namespace) -> int:
 def _router(args: argparse.Namespace) -> int:
     from services.router.__main__ import main as router_main
 
-    return router_main(sum((["--listen", e] for e in args.listen or []), []))
+    argv = sum((["--listen", e] for e in args.listen or []), [])
+    argv += ["--users", args.users] if args.users else []
+    argv += ["--acl", args.acl] if args.acl else []
+    return router_main(argv)
+
+
+def _credentials(args: argparse.Namespace) -> int:
+    from services.router.credentials import SERVICE_USERS, USERS_FILE, write_credentials
+
+    users = [u.strip() for u in args.users.split(",")] if args.users else list(SERVICE_USERS)
+    try:
+        write_credentials(Path(args.out), users, force=args.force)
+    except (ValueError, OSError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    out = Path(args.out)
+    print(f"wrote {len(users)} passwords to {out} (owner-only): {out / USERS_FILE} for the router,")
+    print(f"  {', '.join(f'{u}.password' for u in users)} for the services (bus.password_file)")
+    return 0
 
 
 def _add_optional(sub, module: str, register: str) -> None:
@@ -323,11 +349,31 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--hz", type=float, default=20.0, help="control rate recorded with the episode")
     p.add_argument("--success", action="store_true", help="stop: mark the episode successful")
     p.add_argument("--timeout", type=float, default=30.0, help="seconds to wait for the recorder")
+    p.add_argument(
+        "--user",
+        default=os.environ.get("VIEWSCALE_BUS__USER"),
+        help="authenticate as this Zenoh user, e.g. operator (default $VIEWSCALE_BUS__USER)",
+    )
+    p.add_argument(
+        "--password-file",
+        default=os.environ.get("VIEWSCALE_BUS__PASSWORD_FILE"),
+        help="the user's password file (default $VIEWSCALE_BUS__PASSWORD_FILE)",
+    )
     p.set_defaults(func=_episode)
 
     p = sub.add_parser("router", help="run a Zenoh router for a multi-host or compose session")
     p.add_argument("--listen", action="append", help="endpoint, repeatable (default tcp/0.0.0.0:7447)")
+    p.add_argument("--users", help="user:password file (viewscale credentials); sessions not in it are refused")
+    p.add_argument("--acl", help="access control per user, e.g. deploy/zenoh/router-acl.json5 (needs --users)")
     p.set_defaults(func=_router)
+
+    p = sub.add_parser(
+        "credentials", help="passwords for an authenticated session: router's users file + one per service"
+    )
+    p.add_argument("--out", default="deploy/zenoh/secrets", help="folder to write to (default deploy/zenoh/secrets)")
+    p.add_argument("--users", help="comma-separated user names (default: the users of deploy/zenoh/router-acl.json5)")
+    p.add_argument("--force", action="store_true", help="replace existing credentials (rotates every password)")
+    p.set_defaults(func=_credentials)
 
     _add_optional(sub, "services.dataset.cli", "add_dataset_commands")
     _add_optional(sub, "services.trainer.cli", "add_train_command")
