@@ -70,6 +70,7 @@ def _collect(args: argparse.Namespace) -> int:
             control_hz=args.hz,
             max_ticks=args.max_ticks,
             extra=extra,
+            auth=args.auth,
         )
     except (CollectError, ConfigError, OutputError) as exc:
         print(f"error: {exc}", file=sys.stderr)
@@ -293,6 +294,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--hz", type=float, default=20.0, help="control rate (default 20)")
     p.add_argument("--max-ticks", type=int, default=None, help="per-episode tick limit (default per task)")
     p.add_argument("--fast", action="store_true", help="lockstep instead of real time: as fast as the machine goes")
+    p.add_argument(
+        "--auth",
+        action="store_true",
+        help="every service authenticates as its own user; the router enforces deploy/zenoh/router-acl.json5",
+    )
     p.add_argument("--config", default=None, help="YAML with per-service sections (e.g. deploy/sim.yaml)")
     p.add_argument(
         "--set",

@@ -4,7 +4,9 @@ Starts a Zenoh router on a free loopback port, then the sim, teleop and recorder
 subprocesses connected to it (exactly what `docker compose up` runs, minus the containers),
 waits for each one's ``ready`` line, runs the session in this process with progress per episode,
 and stops everything with SIGTERM when the episodes are recorded. Service logs go to
-``<out>/logs/<service>.log``.
+``<out>/logs/<service>.log``. With ``auth`` (``viewscale collect --auth``) the router enforces
+deploy/zenoh/router-acl.json5 and each service authenticates as its own user, with credentials made
+for this session in a temporary folder and deleted after it.
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ import selectors
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -22,6 +25,7 @@ from services.core.bus import Bus, BusConfig, free_tcp_port, router
 from services.core.config import ConfigError, load_config
 from services.core.runtime import child_env, writable_dir
 from services.recorder.config import RecorderConfig
+from services.router.credentials import USERS_FILE, password_path, write_credentials
 from services.session.config import SessionConfig
 from services.session.session import Session, SessionError, SessionResult, summary
 from services.teleop.config import TeleopConfig
@@ -29,6 +33,7 @@ from sim.config import SimConfig
 
 MODULES = {"recorder": "services.recorder", "sim": "sim", "teleop": "services.teleop"}  # service -> module
 SERVICE_CONFIGS = {"recorder": RecorderConfig, "sim": SimConfig, "teleop": TeleopConfig}
+ACL_FILE = Path(__file__).resolve().parents[2] / "deploy" / "zenoh" / "router-acl.json5"  # in a source tree
 
 
 class CollectError(RuntimeError):
@@ -56,15 +61,23 @@ class LocalStack:
     config: str | None
     overrides: dict[str, list[str]] = field(default_factory=dict)  # service -> --set items
     ready_timeout_s: float = 120.0
+    auth: bool = False  # the router enforces ACL_FILE; every service, and the session, its own user
     children: list[Child] = field(default_factory=list)
 
     def __post_init__(self):
         self.port = free_tcp_port()
         self.endpoint = f"tcp/127.0.0.1:{self.port}"
         self.log_dir = self.out_dir / "logs"
+        self._secrets: tempfile.TemporaryDirectory | None = None
+
+    def _credentials(self, user: str) -> dict[str, object]:
+        if self._secrets is None:
+            return {}
+        return {"user": user, "password_file": password_path(Path(self._secrets.name), user)}
 
     def bus_config(self) -> BusConfig:
-        return BusConfig(mode="client", connect=[self.endpoint])
+        """How the session in this process joins (as user ``session`` when ``auth``)."""
+        return BusConfig(mode="client", connect=[self.endpoint], **self._credentials("session"))
 
     def check(self) -> None:
         """Every service's config as it will start, loaded here first: a wrong --set is one error, not a
@@ -80,7 +93,13 @@ class LocalStack:
     def __enter__(self) -> LocalStack:
         self.check()
         self.log_dir.mkdir(parents=True, exist_ok=True)
-        self._router = router([self.endpoint])
+        if self.auth:
+            self._secrets = tempfile.TemporaryDirectory(prefix="viewscale-credentials-")
+            secrets = Path(self._secrets.name)
+            write_credentials(secrets)
+            self._router = router([self.endpoint], acl_file=ACL_FILE, users_file=secrets / USERS_FILE)
+        else:
+            self._router = router([self.endpoint])
         try:
             self._wait_ready([self._start(name) for name in MODULES])
         except BaseException:
@@ -92,7 +111,8 @@ class LocalStack:
         cmd = [sys.executable, "-m", MODULES[name]]
         if self.config:
             cmd += ["--config", self.config]
-        for item in ["bus.mode=client", f"bus.connect=[{self.endpoint}]", *self.overrides.get(name, [])]:
+        creds = [f"bus.{k}={v}" for k, v in self._credentials(name).items()]
+        for item in ["bus.mode=client", f"bus.connect=[{self.endpoint}]", *creds, *self.overrides.get(name, [])]:
             cmd += ["--set", item]
         log_path = self.log_dir / f"{name}.log"
         env = child_env(dict(os.environ, MUJOCO_GL=os.environ.get("MUJOCO_GL", "egl"), PYTHONUNBUFFERED="1"))
@@ -161,6 +181,9 @@ class LocalStack:
         if getattr(self, "_router", None) is not None:
             self._router.close()
             self._router = None
+        if self._secrets is not None:
+            self._secrets.cleanup()
+            self._secrets = None
 
 
 def collect(
@@ -176,6 +199,7 @@ def collect(
     max_ticks: int | None = None,
     extra: dict[str, list[str]] | None = None,
     progress=print,
+    auth: bool = False,
 ) -> SessionResult:
     out = writable_dir(out, "--out")
     sim = [f"rig={rig}", f"task={task}", f"realtime={str(realtime).lower()}", f"control_hz={control_hz}"]
@@ -184,11 +208,12 @@ def collect(
     overrides = {"sim": sim, "recorder": [f"out_dir={out}"], "teleop": []}
     for name, items in (extra or {}).items():
         overrides.setdefault(name, []).extend(items)
-    stack = LocalStack(out, config, overrides)
+    stack = LocalStack(out, config, overrides, auth=auth)
     stack.check()  # a wrong --set is one error before anything starts
     progress(f"starting sim ({task}, rig {rig}), teleop (scripted) and recorder -> {out}")
     with stack:
-        progress(f"services ready on {stack.endpoint}; logs in {stack.log_dir}")
+        how = " (authenticated, access control on)" if auth else ""
+        progress(f"services ready on {stack.endpoint}{how}; logs in {stack.log_dir}")
         cfg = SessionConfig(
             bus=stack.bus_config(),
             task=task,
