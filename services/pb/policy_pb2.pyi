@@ -140,7 +140,7 @@ class Timing(_message.Message):
     def __init__(self, decode_ms: _Optional[float] = ..., encode_ms: _Optional[float] = ..., step_p50_ms: _Optional[float] = ..., step_max_ms: _Optional[float] = ..., total_ms: _Optional[float] = ..., server_receive_ns: _Optional[int] = ..., server_send_ns: _Optional[int] = ...) -> None: ...
 
 class ActionReply(_message.Message):
-    __slots__ = ("seq", "actions", "start_index", "obs_stamp_ns", "views_used", "degraded", "degraded_reasons", "timing")
+    __slots__ = ("seq", "actions", "start_index", "obs_stamp_ns", "views_used", "degraded", "degraded_reasons", "timing", "checkpoint_sha256")
     SEQ_FIELD_NUMBER: _ClassVar[int]
     ACTIONS_FIELD_NUMBER: _ClassVar[int]
     START_INDEX_FIELD_NUMBER: _ClassVar[int]
@@ -149,6 +149,7 @@ class ActionReply(_message.Message):
     DEGRADED_FIELD_NUMBER: _ClassVar[int]
     DEGRADED_REASONS_FIELD_NUMBER: _ClassVar[int]
     TIMING_FIELD_NUMBER: _ClassVar[int]
+    CHECKPOINT_SHA256_FIELD_NUMBER: _ClassVar[int]
     seq: int
     actions: _containers.RepeatedCompositeFieldContainer[_control_pb2.EefAction]
     start_index: int
@@ -157,7 +158,8 @@ class ActionReply(_message.Message):
     degraded: bool
     degraded_reasons: _containers.RepeatedScalarFieldContainer[str]
     timing: Timing
-    def __init__(self, seq: _Optional[int] = ..., actions: _Optional[_Iterable[_Union[_control_pb2.EefAction, _Mapping]]] = ..., start_index: _Optional[int] = ..., obs_stamp_ns: _Optional[int] = ..., views_used: _Optional[_Iterable[str]] = ..., degraded: _Optional[bool] = ..., degraded_reasons: _Optional[_Iterable[str]] = ..., timing: _Optional[_Union[Timing, _Mapping]] = ...) -> None: ...
+    checkpoint_sha256: str
+    def __init__(self, seq: _Optional[int] = ..., actions: _Optional[_Iterable[_Union[_control_pb2.EefAction, _Mapping]]] = ..., start_index: _Optional[int] = ..., obs_stamp_ns: _Optional[int] = ..., views_used: _Optional[_Iterable[str]] = ..., degraded: _Optional[bool] = ..., degraded_reasons: _Optional[_Iterable[str]] = ..., timing: _Optional[_Union[Timing, _Mapping]] = ..., checkpoint_sha256: _Optional[str] = ...) -> None: ...
 
 class ResetRequest(_message.Message):
     __slots__ = ("session_id", "seed")

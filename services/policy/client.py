@@ -113,11 +113,8 @@ class PolicyClient:
         self.stub = policy_pb2_grpc.PolicyStub(self.channel)
         self._seq = 0
         self._lock = threading.Lock()
-        self._reconnected = False
-        self._was_ready = False
         self.info = self._connect(connect_timeout_s)
         self.reset()  # a fresh session: a client restarted under the same id starts its seq again at 1
-        self.channel.subscribe(self._on_connectivity)
 
     # -- connection ----------------------------------------------------------------------------
     def _connect(self, timeout_s: float) -> policy_pb2.PolicyInfo:
@@ -150,21 +147,17 @@ class PolicyClient:
             )
         return info
 
-    def _on_connectivity(self, state: grpc.ChannelConnectivity) -> None:
-        if state == grpc.ChannelConnectivity.READY:
-            if self._was_ready:
-                self._reconnected = True  # checked before the next request
-            self._was_ready = True
-
-    def _check_after_reconnect(self) -> None:
-        if not self._reconnected:
-            return
-        self._reconnected = False
-        info = self._connect(self.timeout_s)
-        if info.checkpoint_sha256 != self.info.checkpoint_sha256:
+    def _check_checkpoint(self, sha256: str) -> None:
+        """A chunk from another checkpoint (the server restarted with a new one, or a load balancer
+        reached another) is refused: its actions were computed with other normalisation and views."""
+        if sha256 and sha256 != self.info.checkpoint_sha256:
+            try:
+                now = self._connect(self.timeout_s).model_id
+            except PolicyError:
+                now = "another checkpoint"
             raise PolicyChanged(
-                f"{self.address} now serves {info.model_id} ({info.checkpoint_sha256[:12]}), "
-                f"not {self.info.model_id} ({self.info.checkpoint_sha256[:12]})"
+                f"{self.address} now serves {now} ({sha256[:12]}), not {self.info.model_id} "
+                f"({self.info.checkpoint_sha256[:12]}): reconnect to use it"
             )
 
     # -- calls ---------------------------------------------------------------------------------
@@ -204,12 +197,12 @@ class PolicyClient:
         return req
 
     def call(self, req: policy_pb2.ActionRequest, timeout_s: float | None = None) -> ActionChunk:
-        self._check_after_reconnect()
         t0 = time.perf_counter()
         try:
             reply = self.stub.GetAction(req, timeout=timeout_s or self.timeout_s, metadata=self._metadata)
         except grpc.RpcError as exc:
             raise PolicyError(f"GetAction seq {req.seq}: {exc.code().name}: {exc.details()}", exc.code()) from None
+        self._check_checkpoint(reply.checkpoint_sha256)
         acts = np.array([[*a.dp, *a.drot, a.gripper] for a in reply.actions], dtype=np.float64).reshape(-1, 7)
         t = reply.timing
         return ActionChunk(
@@ -243,7 +236,6 @@ class PolicyClient:
             raise PolicyError(f"Reset: {exc.code().name}: {exc.details()}", exc.code()) from None
 
     def close(self) -> None:
-        self.channel.unsubscribe(self._on_connectivity)
         self.channel.close()
 
     def __enter__(self) -> PolicyClient:

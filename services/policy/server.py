@@ -571,6 +571,7 @@ class PolicyService(policy_pb2_grpc.PolicyServicer):
             views_used=result.views_used,
             degraded=bool(result.dropped),
             degraded_reasons=[f"{v}: {why}" for v, why in result.dropped.items()],
+            checkpoint_sha256=self.spec.sha256,
         )
         for row in actions:
             reply.actions.append(action_msg(EefDelta(row[0:3], row[3:6], float(row[6]))))

@@ -3,8 +3,10 @@
     viewscale eval --checkpoint runs/lift --task lift --episodes 50 --views F --out runs/eval-lift-F
     viewscale eval --checkpoint runs/lift --task lift --episodes 50 --views F,FL,FR --workers 3 --out ...
     viewscale eval --expert --task lift --episodes 50 --out runs/eval-lift-expert      # the baseline row
+    viewscale eval --server 127.0.0.1:50051 --task lift --episodes 10 --views F --out ...  # a running server
 
-Starts the policy server (``viewscale serve``, in-process or with worker processes), then a
+Starts the policy server (``viewscale serve``, in-process or with worker processes; or uses a
+running one with ``--server``, its defaults read from GetPolicyInfo), then a
 session stack on loopback as ``viewscale collect`` does -- router, the sim (the checkpoint's rig
 and frame size), the recorder, and the teleop whose driver is the policy (``type: policy``: the
 robot-side client and its chunk runner) -- and runs an evaluation session: every episode is
@@ -22,6 +24,7 @@ first N episodes from one camera with the outcome marked.
 from __future__ import annotations
 
 import json
+import os
 import statistics
 import subprocess
 import sys
@@ -56,6 +59,7 @@ class EvalSpec:
     views: list[str] | None = None  # composed views (default: the checkpoint's training views)
     gamma: dict[str, float] | None = None
     workers: int = 0  # policy worker processes (0: in-process)
+    server: str | None = None  # a running `viewscale serve` (host:port) instead of starting one
     rig: str | None = None  # default: the checkpoint's
     size: int | None = None  # frame size the sim renders (default: the checkpoint's cameras')
     realtime: bool = False
@@ -84,6 +88,28 @@ def _checkpoint_facts(path: str) -> dict[str, Any]:
         "views": info.get("views") or [],
         "control_hz": info.get("control_hz") or 20.0,
         "size": (int(cal["source_width"]), int(cal["source_height"])) if cal else None,
+    }
+
+
+def _server_facts(address: str, timeout_s: float = 15.0) -> dict[str, Any]:
+    """What the evaluation needs, asked of a running policy server (GetPolicyInfo)."""
+    from services.policy.client import PolicyClient, PolicyError
+
+    token = os.environ.get("VIEWSCALE_DRIVER__TOKEN")
+    try:
+        with PolicyClient(address, session_id="eval-info", token=token, connect_timeout_s=timeout_s) as client:
+            info = client.info
+    except PolicyError as exc:
+        raise EvalError(f"--server {address}: {exc}") from None
+    cams = list(info.cameras)
+    return {
+        "path": f"{info.model_id} served by {address}",
+        "rigs": [],
+        "tasks": [],
+        "views": list(info.default_views),
+        "cameras": [c.name for c in cams],
+        "control_hz": info.control_hz or 20.0,
+        "size": (int(cams[0].width), int(cams[0].height)) if cams else None,
     }
 
 
@@ -197,6 +223,7 @@ def summarise(
         "expert": spec.expert,
         "views": spec.views,
         "workers": spec.workers,
+        "server": spec.server,
         "realtime": spec.realtime,
         "episodes": n,
         "successes": k,
@@ -256,9 +283,20 @@ def evaluate(spec: EvalSpec, out: Path, progress: Callable[[str], None] = print)
         raise EvalError(f"--episodes must be at least 1, got {spec.episodes}")
     facts = None
     if not spec.expert:
-        if not spec.checkpoint:
-            raise EvalError("--checkpoint is required (or --expert for the scripted baseline)")
-        facts = _checkpoint_facts(spec.checkpoint)
+        if spec.server:
+            if spec.checkpoint or spec.workers:
+                raise EvalError("--server evaluates a running policy server: leave out --checkpoint and --workers")
+            facts = _server_facts(spec.server)
+            unknown = [v for v in spec.views or [] if v not in facts["cameras"]]
+            if unknown:
+                raise EvalError(
+                    f"the server at {spec.server} has no camera {', '.join(unknown)}; "
+                    f"it knows {', '.join(facts['cameras'])} (start it with the rig holding them: --rig)"
+                )
+        elif not spec.checkpoint:
+            raise EvalError("--checkpoint is required (or --server, or --expert for the scripted baseline)")
+        else:
+            facts = _checkpoint_facts(spec.checkpoint)
         if facts["tasks"] and spec.task not in facts["tasks"]:
             progress(f"note: {facts['path']} was trained on {', '.join(facts['tasks'])}, evaluated on {spec.task}")
     rig = spec.rig or (facts["rigs"][0] if facts and len(facts["rigs"]) == 1 else None) or "five15"
@@ -322,6 +360,9 @@ def evaluate(spec: EvalSpec, out: Path, progress: Callable[[str], None] = print)
 
     if spec.expert:
         result = run_session(None)
+    elif spec.server:
+        progress(f"policy server {spec.server}: {facts['path']}")
+        result = run_session(spec.server)
     else:
         with PolicyServer(facts["path"], out / "logs", views, spec.workers, rig, spec.task) as server:
             progress(f"policy server ready on {server.address} ({spec.workers or 'no'} workers)")

@@ -68,6 +68,28 @@ def test_eval_drives_the_sim_through_the_policy_server_and_records_every_rollout
     assert video.is_file() and video.stat().st_size > 2000
 
 
+def test_eval_against_a_running_server_single_view_then_composed(tiny_checkpoint, tmp_path):
+    from services.session.evaluate import PolicyServer, _checkpoint_facts
+
+    recorded_size = _checkpoint_facts(str(tiny_checkpoint))["size"][0]
+    with PolicyServer(str(tiny_checkpoint), tmp_path / "serve", None, 2, "five15", "lift") as server:
+        for views in ("F", "F,FL"):
+            out = tmp_path / f"eval-{views}"
+            proc = viewscale(
+                "eval", "--server", server.address, "--task", "lift", "--episodes", "1", "--views", views,
+                "--max-ticks", "12", "--out", str(out),
+            )  # fmt: skip
+            assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+            s = json.loads((out / "report.json").read_text())["summary"]
+            assert s["server"] == server.address and s["views"] == views.split(",") and s["requests"] >= 2
+            assert s["size"] == recorded_size and "served by" in s["checkpoint"]  # defaults read from GetPolicyInfo
+        proc = viewscale("eval", "--server", server.address, "--views", "XX", "--out", str(tmp_path / "bad"))
+        assert proc.returncode == 2 and "no camera XX" in proc.stderr and "Traceback" not in proc.stderr
+        assert server.proc.poll() is None  # the same server answered both evaluations
+    proc = viewscale("eval", "--server", server.address, "--out", str(tmp_path / "gone"))
+    assert proc.returncode == 2 and "no policy server" in proc.stderr, proc.stderr[-2000:]
+
+
 def test_the_expert_row_goes_through_the_same_path(tmp_path):
     out = tmp_path / "expert"
     proc = viewscale(

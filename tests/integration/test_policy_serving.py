@@ -294,6 +294,36 @@ def test_a_newer_request_of_a_session_cancels_the_older_and_sessions_are_separat
         stop(proc)
 
 
+def test_a_chunk_from_another_checkpoint_is_refused_after_a_restart(checkpoint, observations, tmp_path):
+    import json
+    import shutil
+
+    from services.policy.checkpoint import resolve_checkpoint
+    from services.policy.client import PolicyChanged
+
+    other = tmp_path / "other-run" / "checkpoints" / "step_0000001"
+    shutil.copytree(resolve_checkpoint(checkpoint), other)
+    info = json.loads((other / "policy.json").read_text())
+    (other / "policy.json").write_text(json.dumps({**info, "note": "another checkpoint"}))  # another sha256
+    port = free_tcp_port()
+    frames, states = observations[3]
+
+    def serve(ckpt: Path) -> subprocess.Popen:
+        args = ["serve", "--checkpoint", str(ckpt), "--listen", f"127.0.0.1:{port}", "--views", "F", "--in-process"]
+        return _start(args, "policy")[0]
+
+    proc = serve(checkpoint)
+    try:
+        with PolicyClient(f"127.0.0.1:{port}", session_id="robot-1", connect_timeout_s=60) as client:
+            assert client.get_action({"F": frames["F"]}, states, seed=1).actions.shape == (16, 7)
+            stop(proc)
+            proc = serve(other)  # the same address now serves another checkpoint
+            with pytest.raises(PolicyChanged, match="now serves other-run@step_0000001"):
+                client.get_action({"F": frames["F"]}, states, seed=1, timeout_s=60)
+    finally:
+        stop(proc)
+
+
 def test_health_is_not_serving_until_a_worker_is_ready(checkpoint):
     port = free_tcp_port()
     proc = subprocess.Popen(
