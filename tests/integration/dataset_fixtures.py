@@ -41,7 +41,7 @@ def trajectory(n: int, seed: int = 0, hold: tuple[int, ...] = (), scale: float =
     act = np.c_[dp, dr, g]
     pos = np.zeros((n, 3))
     R = np.zeros((n, 3, 3))
-    pos[0] = [0.40 + 0.02 * seed, 0.0, 0.25]
+    pos[0] = [0.44 + 0.02 * seed, 0.0, 0.15]  # near the rigs' centre: the EEF stays inside every view
     R[0] = Rotation.from_euler("xyz", [np.pi, 0.1 * seed, 0.0]).as_matrix()
     for k in range(n - 1):
         pos[k + 1] = pos[k] + dp[k]
