@@ -220,15 +220,17 @@ class WorkerInfoRequest(_message.Message):
     def __init__(self) -> None: ...
 
 class WorkerInfo(_message.Message):
-    __slots__ = ("checkpoint_sha256", "model_id", "device", "threads", "max_batch")
+    __slots__ = ("checkpoint_sha256", "model_id", "device", "threads", "max_batch", "streams")
     CHECKPOINT_SHA256_FIELD_NUMBER: _ClassVar[int]
     MODEL_ID_FIELD_NUMBER: _ClassVar[int]
     DEVICE_FIELD_NUMBER: _ClassVar[int]
     THREADS_FIELD_NUMBER: _ClassVar[int]
     MAX_BATCH_FIELD_NUMBER: _ClassVar[int]
+    STREAMS_FIELD_NUMBER: _ClassVar[int]
     checkpoint_sha256: str
     model_id: str
     device: str
     threads: int
     max_batch: int
-    def __init__(self, checkpoint_sha256: _Optional[str] = ..., model_id: _Optional[str] = ..., device: _Optional[str] = ..., threads: _Optional[int] = ..., max_batch: _Optional[int] = ...) -> None: ...
+    streams: int
+    def __init__(self, checkpoint_sha256: _Optional[str] = ..., model_id: _Optional[str] = ..., device: _Optional[str] = ..., threads: _Optional[int] = ..., max_batch: _Optional[int] = ..., streams: _Optional[int] = ...) -> None: ...

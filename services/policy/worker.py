@@ -150,7 +150,7 @@ class DenoiseWorkerService(policy_pb2_grpc.DenoiseWorkerServicer):
 
     def __init__(self, engine: ModelEngine | None = None):
         self.engine = engine  # None while the model loads: calls are UNAVAILABLE (health says NOT_SERVING)
-        self.streams = 0
+        self.streams = 0  # Denoise streams opened so far
 
     async def _ready(self, context) -> ModelEngine:
         if self.engine is None:
@@ -165,6 +165,7 @@ class DenoiseWorkerService(policy_pb2_grpc.DenoiseWorkerServicer):
             device=str(e.device),
             threads=e.threads,
             max_batch=e.max_batch,
+            streams=self.streams,
         )
 
     async def Denoise(self, request_iterator, context):
