@@ -27,6 +27,7 @@ from typing import Any
 import torch
 from safetensors.torch import load_file, save_file
 
+from services.policy.model.fastpath import gemm_conv1d_pays_off, use_gemm_conv1d
 from services.policy.model.policy import DiffusionPolicy, ModelConfig
 
 FORMAT = "viewscale-policy"
@@ -214,11 +215,13 @@ def load_state_checked(module: torch.nn.Module, state: dict[str, torch.Tensor], 
 
 
 def load_policy(
-    path: str | Path, device: str | torch.device = "cpu", expect: ModelConfig | None = None
+    path: str | Path, device: str | torch.device = "cpu", expect: ModelConfig | None = None, fast_paths: bool = True
 ) -> LoadedPolicy:
     """Build the policy from a checkpoint folder (or a run's latest) for inference.
 
     ``expect``: fail with the differing fields if the checkpoint's model config is not this one.
+    ``fast_paths``: compute the U-Net's Conv1d layers as GEMMs where that was measured faster
+    (the CPU; ``services.policy.model.fastpath``); the same maths either way.
     """
     path = resolve_checkpoint(path)
     info = read_info(path)
@@ -229,4 +232,7 @@ def load_policy(
             raise CheckpointError(f"checkpoint {path} has a different model config: {', '.join(diff)}")
     policy = DiffusionPolicy(cfg, load_pretrained=False)
     load_state_checked(policy, load_file(str(path / MODEL_FILE)), f"checkpoint {path}")
-    return LoadedPolicy(policy.to(device).eval(), info, path)
+    policy = policy.to(device).eval()
+    if fast_paths and gemm_conv1d_pays_off(torch.device(device)):
+        use_gemm_conv1d(policy)
+    return LoadedPolicy(policy, info, path)

@@ -59,6 +59,8 @@ class TrainConfig(Frozen):
     progress: bool = True  # progress bar on stderr
     action_space: Literal["base", "eef", "camera"] | None = None  # expected action space; None = the dataset's
     views: list[str] | None = None  # train on these views of the dataset only; None = all
+    fast_paths: bool = True  # the measured faster kernels for the same maths (GEMM Conv1d on the CPU, fused
+    # AdamW, one-pass EMA: services.policy.model.fastpath); false = the plain PyTorch modules
     cond_dropout: float = Field(0.0, ge=0.0, lt=1.0)  # share of samples trained unconditioned (zero cond):
     # lets the server compose views as an exact product with the unconditional branch
     model: ModelConfig = Field(default_factory=ModelConfig)  # policy architecture

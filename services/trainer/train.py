@@ -32,6 +32,7 @@ from services.core.config import ConfigError
 from services.dataset.store import DatasetError
 from services.policy import checkpoint as ckpt
 from services.policy.model.diffusion import compute_loss, make_train_scheduler
+from services.policy.model.fastpath import ema_update, gemm_conv1d_pays_off, make_optimizer, use_gemm_conv1d
 from services.policy.model.policy import DiffusionPolicy, ModelConfig
 from services.trainer.config import TrainConfig, explicitly_set
 from services.trainer.data import PseudoDemoDataset
@@ -215,13 +216,18 @@ def lr_at(step: int, cfg: TrainConfig) -> float:
 
 class EMA:
     """Exponential moving average of a model's weights, diffusion_policy's schedule:
-    decay(step) = clamp(1 - (1 + step / inv_gamma) ** -power, min, max), 0 at step 0."""
+    decay(step) = clamp(1 - (1 + step / inv_gamma) ** -power, min, max), 0 at step 0.
 
-    def __init__(self, model: torch.nn.Module, cfg):
+    ``fast``: one ``_foreach_lerp_`` over all averaged tensors (``fastpath.ema_update``) instead of
+    a multiply and an add per tensor."""
+
+    def __init__(self, model: torch.nn.Module, cfg, fast: bool = True):
         import copy
 
         self.cfg = cfg
+        self.fast = fast
         self.model = copy.deepcopy(model).eval().requires_grad_(False)
+        self._pairs: tuple[list[torch.Tensor], list[torch.Tensor], list[torch.Tensor], list[torch.Tensor]] | None = None
 
     def decay(self, step: int) -> float:
         if step <= 0:
@@ -229,17 +235,34 @@ class EMA:
         value = 1.0 - (1.0 + step / self.cfg.inv_gamma) ** -self.cfg.power
         return max(self.cfg.min_decay, min(value, self.cfg.max_decay))
 
+    def _tensors(self, model: torch.nn.Module):
+        """(averaged, current, copied-into, copied-from): found once; the tensors are updated in place."""
+        if self._pairs is None:
+            frozen = {name for name, p in model.named_parameters() if not p.requires_grad}  # e.g. the ViT under LoRA
+            ema_state = self.model.state_dict()
+            avg, cur, dst, src = [], [], [], []
+            for name, t in model.state_dict().items():
+                ema_t = ema_state[name]
+                if ema_t.dtype.is_floating_point and name not in frozen:
+                    avg.append(ema_t)
+                    cur.append(t)
+                else:  # frozen weights and integer buffers are copied, as diffusion_policy does
+                    dst.append(ema_t)
+                    src.append(t)
+            self._pairs = (avg, cur, dst, src)
+        return self._pairs
+
     @torch.no_grad()
     def update(self, model: torch.nn.Module, step: int) -> None:
         d = self.decay(step)
-        frozen = {name for name, p in model.named_parameters() if not p.requires_grad}  # e.g. the ViT under LoRA
-        ema_state = self.model.state_dict()
-        for name, t in model.state_dict().items():
-            ema_t = ema_state[name]
-            if ema_t.dtype.is_floating_point and name not in frozen:
-                ema_t.mul_(d).add_(t.detach(), alpha=1.0 - d)
-            else:
-                ema_t.copy_(t)  # frozen weights and integer buffers are copied, as diffusion_policy does
+        avg, cur, dst, src = self._tensors(model)
+        if self.fast:
+            ema_update(avg, cur, d)
+        else:
+            for a, c in zip(avg, cur):
+                a.mul_(d).add_(c, alpha=1.0 - d)
+        for a, c in zip(dst, src):
+            a.copy_(c)
 
 
 def pick_device(spec: str, local_rank: int) -> torch.device:
@@ -379,11 +402,12 @@ def train(
         log.warning("amp=bf16 on %s: autocast on the CPU is slower than float32 here; using it as asked", device)
     if cfg.channels_last == "on" or (cfg.channels_last == "auto" and device.type == "cuda"):
         policy.use_channels_last()
-    ema = EMA(policy, cfg.ema) if cfg.ema.enabled and main else None
+    if cfg.fast_paths and gemm_conv1d_pays_off(device):
+        use_gemm_conv1d(policy)  # same maths, faster kernels (services.policy.model.fastpath)
+    ema = EMA(policy, cfg.ema, fast=cfg.fast_paths) if cfg.ema.enabled and main else None
     params = [p for p in policy.parameters() if p.requires_grad]
-    optim = torch.optim.AdamW(
-        params, lr=cfg.optim.lr, betas=tuple(cfg.optim.betas), eps=cfg.optim.eps, weight_decay=cfg.optim.weight_decay
-    )
+    o = cfg.optim
+    optim = make_optimizer(params, o.lr, tuple(o.betas), o.eps, o.weight_decay, fused=cfg.fast_paths)
     torch.manual_seed(cfg.seed + 1 + rank)  # crops, noise and diffusion steps differ between ranks
     start = 0
     history: list[dict[str, Any]] = []
