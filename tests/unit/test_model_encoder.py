@@ -78,6 +78,23 @@ def test_resnet_uses_groupnorm_and_eval_is_deterministic():
     assert not torch.allclose(enc(img), enc(img))  # random crops differ between calls
 
 
+def test_feature_relu_is_robomimics_activation_after_the_projection_and_on_for_the_paper_presets():
+    from services.policy.model.presets import preset
+
+    torch.manual_seed(0)
+    cfg = EncoderConfig(width=8, stage_strides=(1, 2, 1, 1), num_keypoints=4, feature_dim=32)
+    plain = build_encoder(cfg, (32, 32)).eval()
+    relu = build_encoder(cfg.model_copy(update={"feature_relu": True}), (32, 32)).eval()
+    relu.load_state_dict(plain.state_dict())  # the same weights: the flag adds no parameters
+    img = torch.rand(4, 3, 32, 32) * 2 - 1
+    raw = plain(img)
+    assert (raw < 0).any()  # without it about half the features are negative
+    assert torch.equal(relu(img), torch.relu(raw))
+    assert preset("paper")["model"]["encoder"]["feature_relu"] is True
+    assert preset("paper-small")["model"]["encoder"]["feature_relu"] is True
+    assert "feature_relu" not in preset("tiny")["model"]["encoder"]  # tiny keeps what its results were measured with
+
+
 def _tiny_vit_file(tmp_path: Path) -> tuple[Path, dict[str, torch.Tensor]]:
     from transformers import DINOv3ViTConfig, DINOv3ViTModel
 

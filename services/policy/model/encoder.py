@@ -56,6 +56,7 @@ class EncoderConfig(Frozen):
     stage_strides: tuple[int, int, int, int] = (1, 2, 2, 2)  # stride of each stage's first block
     stem_pool: bool = True  # 3x3/2 max-pool after the 7x7/2 stem conv
     num_keypoints: int = 32  # spatial-softmax keypoints (each gives x, y)
+    feature_relu: bool = False  # ReLU on the projected features, as robomimic's encoder (diffusion_policy's)
     # dinov3
     vit_config: dict[str, Any] = Field(default_factory=lambda: dict(DINOV3_BASE))  # DINOv3ViTConfig fields
     vit_weights: str | None = None  # local safetensors file (or a dir holding model.safetensors); None = random init
@@ -163,12 +164,14 @@ class ResNet18Encoder(nn.Module):
         self.stages = nn.Sequential(*stages)
         self.pool = SpatialSoftmax(c_in, cfg.num_keypoints)
         self.proj = nn.Linear(cfg.num_keypoints * 2, cfg.feature_dim)
+        self.feature_relu = cfg.feature_relu
 
     def forward(self, img: torch.Tensor) -> torch.Tensor:
         # img: (N, 3, H, W) in [-1, 1] -> (N, feature_dim)
         x = crop_images(img, self.crop, random=self.training)
         x = self.stages(self.stem(x))  # (N, C, h, w)
-        return self.proj(self.pool(x))
+        feats = self.proj(self.pool(x))  # (N, feature_dim)
+        return F.relu(feats) if self.feature_relu else feats
 
 
 def _read_safetensors(path: str | Path) -> dict[str, torch.Tensor]:

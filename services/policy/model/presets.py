@@ -6,7 +6,8 @@ YAML file, environment variable or ``--set`` (``services.trainer.config.load_tra
 - ``tiny``: a few-channel ResNet and U-Net that trains a few hundred steps in minutes on a
   laptop CPU; for smoke runs, tests and CI, not for success rates.
 - ``paper``: diffusion_policy's image (CNN, hybrid) defaults: ResNet-18 with GroupNorm and
-  spatial softmax, U-Net down dims 512/1024/2048, batch 64, AdamW lr 1e-4 (betas 0.95/0.999,
+  spatial softmax (the 64-d keypoint projection followed by a ReLU, as robomimic's), U-Net
+  down dims 512/1024/2048, batch 64, AdamW lr 1e-4 (betas 0.95/0.999,
   weight decay 1e-6), cosine schedule with 500 warm-up steps, EMA power 0.75, DDPM 100 / DDIM 10.
 - ``paper-small``: the same with down dims 256/512/1024 (diffusion_policy's smaller U-Net).
 - ``paper-dinov3``: the paper's simulation baseline: a pretrained DINOv3-base ViT fine-tuned with
@@ -30,6 +31,7 @@ _PAPER: dict[str, Any] = {
             "stage_strides": [1, 2, 2, 2],
             "num_keypoints": 32,
             "feature_dim": 64,
+            "feature_relu": True,  # robomimic's encoder: ReLU after the keypoint projection
         },
         "down_dims": [512, 1024, 2048],
         "diffusion_step_embed_dim": 128,
