@@ -1,34 +1,97 @@
 #!/usr/bin/env bash
-# `make demo`: the whole chain in sim on this machine, with laptop-CPU defaults.
-# Override with env: TASK=can EPISODES=10 RIG=three15 SPACE=base STEPS=500 make demo
+# `make demo`: the whole chain in sim on this machine, with laptop-CPU defaults (about 15 minutes
+# on an idle 2-core machine): scripted demos -> pseudo-demos -> a short tiny training -> a policy
+# server with three worker processes -> closed-loop episodes from F alone and composed over
+# F,FL,FR, through the real services -> a summary table.
+# Override with env, e.g. TASK=can EPISODES=20 STEPS=6000 EVAL_EPISODES=50 make demo
 set -euo pipefail
 cd "$(dirname "$0")/.."
 BIN=.venv/bin
 TASK=${TASK:-lift}
-EPISODES=${EPISODES:-5}
+EPISODES=${EPISODES:-20}
 RIG=${RIG:-five15}
 SPACE=${SPACE:-camera}
-STEPS=${STEPS:-300}
+STEPS=${STEPS:-2500}
+EVAL_EPISODES=${EVAL_EPISODES:-10}
+COMPOSE=${COMPOSE:-F,FL,FR}
+WORKERS=${WORKERS:-3}
 OUT=${OUT:-data/demo}
 export MUJOCO_GL=${MUJOCO_GL:-egl}
+t0=$(date +%s)
+stamp() { local s=$(($(date +%s) - t0)); printf '[%02d:%02d]' $((s / 60)) $((s % 60)); }
 
 views=$($BIN/python -c "from services.core.rig import load_rig; print(','.join(load_rig('$RIG').names))")
 
-echo "== 1/3 collect: $EPISODES scripted '$TASK' episodes, rig $RIG ($views), 84x84 at 20 Hz"
-rm -rf "$OUT/raw"
+echo "$(stamp) == 1/5 collect: $EPISODES scripted '$TASK' episodes, rig $RIG ($views), 84x84 at 20 Hz"
+rm -rf "$OUT"
 $BIN/viewscale collect --task "$TASK" --episodes "$EPISODES" --rig "$RIG" --out "$OUT/raw"
 
 echo
-echo "== 2/3 pseudo-demonstrations: $EPISODES episodes x views $views, $SPACE action space"
+echo "$(stamp) == 2/5 pseudo-demonstrations: $EPISODES episodes x views $views, $SPACE action space"
 $BIN/viewscale dataset build --raw "$OUT/raw" --views "$views" --space "$SPACE" --out "$OUT/ds" --force
 
 echo
-echo "== 3/3 train: tiny diffusion policy, $STEPS steps on the pseudo-demos (CPU is fine)"
-rm -rf "$OUT/run"
+echo "$(stamp) == 3/5 train: tiny diffusion policy, $STEPS steps on the pseudo-demos (CPU)"
 $BIN/viewscale train --data "$OUT/ds" --preset tiny --steps "$STEPS" --out "$OUT/run"
 
 echo
-echo "done:"
-echo "  episodes       $OUT/raw (open them in Foxglove)"
-echo "  pseudo-demos   $OUT/ds (contact sheet: $OUT/ds/contact_sheet.png)"
-echo "  policy         $OUT/run (loss curve: $OUT/run/loss.png)"
+echo "$(stamp) == 4/5 serve: policy server with $WORKERS worker processes"
+mkdir -p "$OUT/serve"
+$BIN/viewscale serve --checkpoint "$OUT/run" --listen 127.0.0.1:0 --views "$COMPOSE" --workers "$WORKERS" \
+  --log-dir "$OUT/serve" >"$OUT/serve/stdout.log" 2>"$OUT/serve/policy.log" &
+server=$!
+trap 'kill "$server" 2>/dev/null || true; wait "$server" 2>/dev/null || true' EXIT
+address=""
+for _ in $(seq 600); do
+  address=$(sed -n 's/^ready policy \([^ ]*\).*/\1/p' "$OUT/serve/stdout.log" | head -1)
+  [ -n "$address" ] && break
+  if ! kill -0 "$server" 2>/dev/null; then
+    echo "error: the policy server exited; its log:" >&2
+    tail -20 "$OUT/serve/policy.log" >&2
+    exit 1
+  fi
+  sleep 0.5
+done
+[ -n "$address" ] || { echo "error: the policy server did not start in 5 minutes ($OUT/serve/policy.log)" >&2; exit 1; }
+echo "policy server ready on $address (logs: $OUT/serve)"
+
+echo
+echo "$(stamp) == 5/5 evaluate: $EVAL_EPISODES closed-loop episodes from F, then composed over $COMPOSE"
+$BIN/viewscale eval --server "$address" --task "$TASK" --episodes "$EVAL_EPISODES" --views F \
+  --video 2 --out "$OUT/eval-F"
+echo
+$BIN/viewscale eval --server "$address" --task "$TASK" --episodes "$EVAL_EPISODES" --views "$COMPOSE" \
+  --video 2 --video-camera F --out "$OUT/eval-composed"
+kill "$server" 2>/dev/null || true
+wait "$server" 2>/dev/null || true
+trap - EXIT
+
+echo
+echo "$(stamp) done"
+$BIN/python - "$OUT" <<'EOF'
+import json, sys
+from pathlib import Path
+
+out = Path(sys.argv[1])
+rows = ["| inference views | success | Wilson 95 % | ticks (successes) | GetAction p50 / p99 ms |", "|---|---|---|---|---|"]
+for name in ("eval-F", "eval-composed"):
+    s = json.loads((out / name / "report.json").read_text())["summary"]
+    lo, hi = s["wilson95"]
+    ticks = s["ticks_success_mean"] if s["ticks_success_mean"] is not None else "-"
+    rows.append(
+        f"| {','.join(s['views'])} | {s['successes']}/{s['episodes']} | {100 * lo:.0f}-{100 * hi:.0f} % | {ticks} | "
+        f"{s['getaction_ms_p50']:.0f} / {s['getaction_ms_p99']:.0f} |"
+    )
+table = "\n".join(rows)
+(out / "summary.md").write_text(f"# viewscale demo\n\n{table}\n")
+print(table)
+EOF
+cat <<EOF
+
+  episodes       $OUT/raw/*.mcap (open them in Foxglove)
+  pseudo-demos   $OUT/ds (contact sheet: $OUT/ds/contact_sheet.png)
+  policy         $OUT/run (loss curve: $OUT/run/loss.png; checkpoints: $OUT/run/checkpoints)
+  evaluations    $OUT/eval-F/report.md, $OUT/eval-composed/report.md (rollouts: */rollouts/*.mcap)
+  videos         $OUT/eval-F/videos, $OUT/eval-composed/videos
+  summary        $OUT/summary.md
+EOF
