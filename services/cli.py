@@ -172,7 +172,8 @@ def _experiment(args: argparse.Namespace) -> int:
     try:
         if args.task not in ("lift", "can", "square"):
             raise ConfigError(f"unknown task {args.task!r}; tasks: lift, can, square")
-        runner = Runner(args.question, args.task, args.scale, Path(args.root), progress=lambda m: print(m, flush=True))
+        say = lambda m: print(m, flush=True)
+        runner = Runner(args.question, args.task, args.scale, Path(args.root), progress=say, only=args.only)
         for sig in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):
             signal.signal(sig, _interrupt)
         runner.run()
@@ -347,6 +348,14 @@ def build_parser() -> argparse.ArgumentParser:
         "--scale", default="tiny", help="tiny (a 2-core CPU), paper (a GPU) or smoke (experiments/scales.yaml)"
     )
     p.add_argument("--root", default="runs/experiments", help="cache and results directory (default runs/experiments)")
+    p.add_argument(
+        "--only",
+        action="append",
+        default=[],
+        metavar="AXIS=VALUE",
+        help="run only the cells with this value: train=F, space=camera, N=10, eval_views=F,FL, seed=0 "
+        "(repeatable; two values of one axis: either)",
+    )
     p.set_defaults(func=_experiment)
 
     p = sub.add_parser("episode", help="start/stop/discard/status of the recorder's episode (hardware sessions)")

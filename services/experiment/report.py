@@ -37,6 +37,11 @@ def write_table(results: dict[str, Any], path: Path) -> None:
         f"{results['scale_settings']['steps']} steps, {len(seeds)} training seed(s) per cell: "
         f"{', '.join(map(str, seeds))}, {results['scale_settings']['episodes']} evaluation episodes per seed, "
         "the same evaluation seeds for every cell). Success k/n pooled over training seeds, Wilson 95%.",
+        *(
+            [f"Only the cells with {' and '.join(results['only'])} (`--only`): part of the question's grid."]
+            if results.get("only")
+            else []
+        ),
         "",
         "| training views | space | eval views | " + " | ".join(f"N={n}" for n in ns) + " |",
         "|---|---|---|" + "---|" * len(ns),

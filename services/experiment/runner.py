@@ -122,8 +122,42 @@ def cells(q: dict[str, Any], scale: dict[str, Any]) -> list[dict[str, Any]]:
     return out
 
 
+AXES = ("train", "space", "N", "eval_views", "seed")
+
+
+def cell_value(cell: dict[str, Any], axis: str) -> str:
+    """How ``--only`` names a cell's value on ``axis``: the training label, ``F,FL,FR``, ``10``..."""
+    if axis == "train":
+        return cell["train"].get("label") or ",".join(cell["train"]["views"])
+    if axis == "eval_views":
+        return ",".join(cell["eval_views"])
+    return str(cell[axis])
+
+
+def select(all_cells: list[dict[str, Any]], only: list[str]) -> list[dict[str, Any]]:
+    """The cells matching every ``AXIS=VALUE`` filter (several filters on one axis: any of them)."""
+    wanted: dict[str, set[str]] = {}
+    for item in only:
+        axis, sep, value = item.partition("=")
+        if not sep or axis not in AXES:
+            raise ConfigError(f"--only {item!r}: expected AXIS=VALUE with AXIS one of {', '.join(AXES)}")
+        known = sorted({cell_value(c, axis) for c in all_cells})
+        if value not in known:
+            raise ConfigError(f"--only {item!r}: this question's {axis} values are {', '.join(known)}")
+        wanted.setdefault(axis, set()).add(value)
+    return [c for c in all_cells if all(cell_value(c, a) in v for a, v in wanted.items())]
+
+
 class Runner:
-    def __init__(self, question: str, task: str, scale: str, root: Path, progress: Callable[[str], None] = print):
+    def __init__(
+        self,
+        question: str,
+        task: str,
+        scale: str,
+        root: Path,
+        progress: Callable[[str], None] = print,
+        only: list[str] = (),
+    ):
         self.name = question.lower()
         self.q = load_question(self.name)
         self.scale_name = scale
@@ -133,7 +167,8 @@ class Runner:
         self.cache = self.root / "cache"
         self.out = self.root / f"{self.name}-{task}-{scale}"
         self.progress = progress
-        self.cells = cells(self.q, self.scale)
+        self.only = list(only)
+        self.cells = select(cells(self.q, self.scale), self.only)
         if not self.cells:
             raise ConfigError(f"{self.name}: the grid has no cells")
 
@@ -321,6 +356,7 @@ class Runner:
             "task": self.task,
             "scale": self.scale_name,
             "scale_settings": self.scale,
+            "only": self.only,  # the cells were filtered: the table is part of the question's grid
             "versions": versions(),
             "cells": rows,
             "wall_s": round(time.monotonic() - t0, 1),

@@ -62,9 +62,20 @@ def test_a_question_runs_caches_its_stages_and_resumes_after_a_kill(tmp_path):
     assert again.returncode == 0 and "evaluating from" not in again.stdout  # everything cached
     assert json.loads((root / "q5-lift-smoke" / "results.json").read_text())["cells"] == cells
 
+    one = subprocess.run(experiment(root, "--only", "eval_views=F,FL,FR"), cwd=ROOT, capture_output=True, text=True)
+    assert one.returncode == 0 and "[1/1]" in one.stdout and "evaluating from" not in one.stdout
+    results = json.loads((root / "q5-lift-smoke" / "results.json").read_text())
+    assert results["cells"] == [cells[1]] and results["only"] == ["eval_views=F,FL,FR"]
+    assert "Only the cells with eval_views=F,FL,FR" in (root / "q5-lift-smoke" / "table.md").read_text()
+
 
 def test_an_unknown_question_or_scale_is_one_line(tmp_path):
-    for args, text in [(["q9"], "unknown experiment 'q9'"), (["q1", "--scale", "huge"], "unknown scale 'huge'")]:
+    for args, text in [
+        (["q9"], "unknown experiment 'q9'"),
+        (["q1", "--scale", "huge"], "unknown scale 'huge'"),
+        (["q1", "--only", "views=F"], "expected AXIS=VALUE with AXIS one of train, space, N"),
+        (["q1", "--only", "N=7"], "this question's N values are 10, 25, 50"),
+    ]:
         proc = subprocess.run(
             [sys.executable, "-m", "services.cli", "experiment", *args, "--root", str(tmp_path)],
             cwd=ROOT,
