@@ -5,8 +5,8 @@ Measured on the 2-core development machine (``bench/train_step.py``, rows in ben
 - ``GemmConv1d``: the U-Net's Conv1d layers as one matrix multiply each (im2col + GEMM, and two
   GEMMs plus a col2im in backward). PyTorch's CPU convolution (oneDNN) is slow on these short,
   wide sequences -- its weight gradient above all -- and a GEMM is what such a layer is.
-- ``make_optimizer(fused=True)``: AdamW's fused CPU kernel, one pass over every parameter
-  instead of a dozen elementwise ops per tensor (``foreach`` measured slower here).
+- ``make_optimizer(fused=True)``: AdamW's fused kernel, one pass over every parameter instead of
+  a dozen elementwise ops per tensor.
 - ``ema_update``: the weight average as one ``torch._foreach_lerp_`` over all tensors.
 
 Each one computes what the plain module computes, up to float32 rounding (the tests compare
