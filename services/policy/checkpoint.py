@@ -22,13 +22,12 @@ import os
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import torch
-from safetensors.torch import load_file, save_file
+if TYPE_CHECKING:  # torch, safetensors and the model are imported where they are used: reading a
+    import torch  # checkpoint's JSON (`viewscale eval`, the session, the CLI) must not load torch
 
-from services.policy.model.fastpath import gemm_conv1d_pays_off, use_gemm_conv1d
-from services.policy.model.policy import DiffusionPolicy, ModelConfig
+    from services.policy.model.policy import DiffusionPolicy, ModelConfig
 
 FORMAT = "viewscale-policy"
 VERSION = 1
@@ -98,6 +97,8 @@ def resolve_checkpoint(path: str | Path) -> Path:
 
 def optimizer_to_tensors(optim: torch.optim.Optimizer) -> tuple[dict[str, torch.Tensor], list[dict[str, Any]]]:
     """AdamW state as flat tensors (``optim.<param index>.<name>``) plus JSON-able param groups."""
+    import torch
+
     sd = optim.state_dict()
     tensors = {}
     for idx, state in sd["state"].items():
@@ -131,6 +132,8 @@ def save_checkpoint(
     keep: int = 2,
 ) -> Path:
     """Write one checkpoint folder, then point ``latest`` at it, then drop the oldest beyond ``keep``."""
+    from safetensors.torch import save_file
+
     path = checkpoint_dir(run_dir, step)
     tmp = path.with_name(path.name + ".partial")
     shutil.rmtree(tmp, ignore_errors=True)
@@ -178,6 +181,8 @@ def read_info(path: str | Path) -> dict[str, Any]:
 
 
 def read_train_state(path: str | Path) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
+    from safetensors.torch import load_file
+
     path = Path(path)
     if not (path / STATE_FILE).is_file():
         raise CheckpointError(f"{path} has no training state (was it exported for serving only?)")
@@ -223,6 +228,12 @@ def load_policy(
     ``fast_paths``: compute the U-Net's Conv1d layers as GEMMs where that was measured faster
     (the CPU; ``services.policy.model.fastpath``); the same maths either way.
     """
+    import torch
+    from safetensors.torch import load_file
+
+    from services.policy.model.fastpath import gemm_conv1d_pays_off, use_gemm_conv1d
+    from services.policy.model.policy import DiffusionPolicy, ModelConfig
+
     path = resolve_checkpoint(path)
     info = read_info(path)
     cfg = ModelConfig.model_validate(info["model"])

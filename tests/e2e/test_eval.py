@@ -114,6 +114,14 @@ def test_eval_refuses_bad_input_with_one_line(tiny_checkpoint, tmp_path):
     assert proc.returncode == 2 and "error:" in proc.stderr and "Traceback" not in proc.stderr
 
 
+def test_the_evaluation_process_never_imports_torch():
+    """It reads the checkpoint's JSON and drives the sim through the client; the model lives in the
+    server's processes. (A bad argument is an error in about a second, not after torch's import.)"""
+    code = "import sys, services.cli, services.session.evaluate; print('TORCH', 'torch' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert "TORCH False" in out.stdout, out.stdout[-2000:] + out.stderr[-2000:]
+
+
 def test_rerendered_episodes_read_and_build_like_collected_ones(sim_dataset, tmp_path):
     raw = sim_dataset.parent / "raw"
     out = tmp_path / "raw-three30"
