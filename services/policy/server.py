@@ -177,19 +177,19 @@ class LocalDenoiser:
         return {}
 
     async def open(self, inputs, unconditional, deadline) -> None:
-        futures = {v: self.engine.encode(frames, state) for v, (frames, state) in inputs.items()}  # one batch
-        self._cond = {v: await asyncio.wrap_future(f) for v, f in futures.items()}
+        views = list(inputs)
+        conds = await asyncio.wrap_future(self.engine.encode_many([inputs[v] for v in views]))  # one pass
+        self._cond = dict(zip(views, conds))
         self._uncond = unconditional
 
     async def step(self, k, xs, deadline):
-        futures = {v: self.engine.step(self._cond[v], x, k) for v, x in xs.items()}  # one batch
-        uncond = (
-            {v: self.engine.step(unconditional_cond(self._cond[v]), x, k) for v, x in xs.items()}
-            if self._uncond
-            else {}
-        )
-        eps = {v: await asyncio.wrap_future(f) for v, f in futures.items()}
-        return eps, {v: await asyncio.wrap_future(f) for v, f in uncond.items()}
+        views = list(xs)
+        items = [(self._cond[v], xs[v], k) for v in views]
+        if self._uncond:
+            items += [(unconditional_cond(self._cond[v]), xs[v], k) for v in views]
+        out = await asyncio.wrap_future(self.engine.step_many(items))  # every view (and twin) in one pass
+        eps = dict(zip(views, out[: len(views)]))
+        return eps, dict(zip(views, out[len(views) :]))
 
     async def close(self) -> None:
         pass

@@ -44,8 +44,9 @@ WORKER_SERVICE = "viewscale.v1.DenoiseWorker"
 @dataclass
 class _Job:
     kind: str  # "encode" or "step"
-    inputs: tuple
-    future: Future
+    items: list[tuple]  # one caller's inputs, computed in the same forward pass
+    future: Future  # its result: the list of outputs, or the one output when ``single``
+    single: bool = False
 
 
 class ModelEngine:
@@ -71,17 +72,26 @@ class ModelEngine:
         return cls(load_policy(checkpoint, device=device), threads, max_batch)
 
     # -- submitting (any thread) -----------------------------------------------------------
+    def _submit(self, kind: str, items: list[tuple], single: bool) -> Future:
+        fut: Future = Future()
+        self._jobs.put(_Job(kind, items, fut, single))
+        return fut
+
     def encode(self, frames: np.ndarray, state: np.ndarray) -> Future:
         """frames (To, H, W, 3) uint8, state (To, D) float32 normalised -> Future of cond (Dc,) float32."""
-        fut: Future = Future()
-        self._jobs.put(_Job("encode", (frames, state), fut))
-        return fut
+        return self._submit("encode", [(frames, state)], single=True)
+
+    def encode_many(self, inputs: list[tuple[np.ndarray, np.ndarray]]) -> Future:
+        """Several (frames, state) at once -> Future of their conds, in one forward pass."""
+        return self._submit("encode", list(inputs), single=False)
 
     def step(self, cond: np.ndarray, x: np.ndarray, k: int) -> Future:
         """cond (Dc,), x (Tp, 7) float32 in the view's frame, timestep k -> Future of eps (Tp, 7) float32."""
-        fut: Future = Future()
-        self._jobs.put(_Job("step", (cond, x, int(k)), fut))
-        return fut
+        return self._submit("step", [(cond, x, int(k))], single=True)
+
+    def step_many(self, items: list[tuple[np.ndarray, np.ndarray, int]]) -> Future:
+        """Several (cond, x, k) at once -> Future of their eps, in one forward pass (a request's views)."""
+        return self._submit("step", [(c, x, int(k)) for c, x, k in items], single=False)
 
     def close(self) -> None:
         self._jobs.put(None)
@@ -94,8 +104,8 @@ class ModelEngine:
             job = self._jobs.get()
             if job is None:
                 return
-            jobs = [job]
-            while len(jobs) < self.max_batch:  # whatever is queued now: no waiting for more
+            jobs, n = [job], len(job.items)
+            while n < self.max_batch:  # whatever is queued now: no waiting for more
                 try:
                     nxt = self._jobs.get_nowait()
                 except queue.Empty:
@@ -104,38 +114,42 @@ class ModelEngine:
                     self._jobs.put(None)
                     break
                 jobs.append(nxt)
+                n += len(nxt.items)
             for kind in ("encode", "step"):
                 batch = [j for j in jobs if j.kind == kind and j.future.set_running_or_notify_cancel()]
                 if not batch:
                     continue
+                items = [item for j in batch for item in j.items]
                 try:
-                    results = self._encode(batch) if kind == "encode" else self._step(batch)
+                    results = self._encode(items) if kind == "encode" else self._step(items)
                 except Exception as exc:  # a bad batch fails its callers, never the thread
-                    log.exception("%s batch of %d failed", kind, len(batch))
+                    log.exception("%s batch of %d failed", kind, len(items))
                     for j in batch:
                         j.future.set_exception(exc)
                     continue
                 self.passes += 1
-                self.batched_items += len(batch)
-                for j, r in zip(batch, results):
-                    j.future.set_result(r)
+                self.batched_items += len(items)
+                i = 0
+                for j in batch:
+                    out, i = results[i : i + len(j.items)], i + len(j.items)
+                    j.future.set_result(out[0] if j.single else out)
 
     @torch.no_grad()
-    def _encode(self, batch: list[_Job]) -> list[np.ndarray]:
-        frames = np.stack([j.inputs[0] for j in batch])  # (B, To, H, W, 3) uint8
+    def _encode(self, items: list[tuple]) -> list[np.ndarray]:
+        frames = np.stack([it[0] for it in items])  # (B, To, H, W, 3) uint8
         # the normaliser's own map, as the training samples were made (services.trainer.data)
         obs = torch.from_numpy(
             np.ascontiguousarray(self.normalizer.normalize_image(frames).transpose(0, 1, 4, 2, 3))
         ).to(self.device)  # (B, To, 3, H, W)
-        state = torch.from_numpy(np.stack([j.inputs[1] for j in batch])).to(self.device)  # (B, To, D)
+        state = torch.from_numpy(np.stack([it[1] for it in items])).to(self.device)  # (B, To, D)
         cond = self.policy.encode(obs, state if state.shape[-1] else None)  # (B, Dc)
         return list(cond.float().cpu().numpy())
 
     @torch.no_grad()
-    def _step(self, batch: list[_Job]) -> list[np.ndarray]:
-        cond = torch.from_numpy(np.stack([j.inputs[0] for j in batch])).to(self.device)  # (B, Dc)
-        x = torch.from_numpy(np.stack([j.inputs[1] for j in batch]).astype(np.float32)).to(self.device)  # (B, Tp, 7)
-        k = torch.tensor([j.inputs[2] for j in batch], dtype=torch.long, device=self.device)  # (B,)
+    def _step(self, items: list[tuple]) -> list[np.ndarray]:
+        cond = torch.from_numpy(np.stack([it[0] for it in items])).to(self.device)  # (B, Dc)
+        x = torch.from_numpy(np.stack([it[1] for it in items]).astype(np.float32)).to(self.device)  # (B, Tp, 7)
+        k = torch.tensor([it[2] for it in items], dtype=torch.long, device=self.device)  # (B,)
         eps = self.policy.denoise_step_eps(x, k, cond)  # (B, Tp, 7)
         return list(eps.float().cpu().numpy())
 
@@ -200,10 +214,8 @@ class DenoiseWorkerService(policy_pb2_grpc.DenoiseWorkerServicer):
                 except ValueError as exc:
                     await context.abort(grpc.StatusCode.INVALID_ARGUMENT, f"step of {view}: {exc}")
                 t0 = time.perf_counter()
-                futures = [self.engine.step(cond, x, req.step.k)]
-                if cond_u is not None:
-                    futures.append(self.engine.step(cond_u, x, req.step.k))
-                eps = [await asyncio.wrap_future(f) for f in futures]
+                conds = [cond] if cond_u is None else [cond, cond_u]  # with its unconditional twin: one pass
+                eps = await asyncio.wrap_future(self.engine.step_many([(c, x, req.step.k) for c in conds]))
                 reply = policy_pb2.DenoiseReply(eps=to_tensor(eps[0]), compute_ms=(time.perf_counter() - t0) * 1e3)
                 if cond_u is not None:
                     reply.eps_uncond.CopyFrom(to_tensor(eps[1]))
