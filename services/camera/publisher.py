@@ -18,6 +18,9 @@ class CameraPublisher:
         self.frames_published = 0
 
     def publish_frames(self, frames: dict[str, Frame]) -> None:
+        """Publish what the driver grabbed; a camera without a new frame is simply not in ``frames``."""
+        if not frames:
+            return
         for name, frame in frames.items():
             self._image[name].put(compressed_image(frame.rgb, frame.stamp_ns, name, self.jpeg_quality))
         self.frames_published += 1

@@ -318,6 +318,11 @@ class Bus:
         """Declare a liveliness token ``<ns>/alive/<service>`` held until close."""
         self._keep.append(self.session.liveliness().declare_token(self.key(f"alive/{service}")))
 
+    def presence(self, name: str):
+        """A liveliness token ``<ns>/alive/<name>`` the caller withdraws (``.undeclare()``) when
+        the thing it stands for goes away (a camera that stops delivering), unlike ``announce``."""
+        return self.session.liveliness().declare_token(self.key(f"alive/{name}"))
+
     def alive(self, timeout: float = 1.0) -> set[str]:
         prefix = self.key("alive/")
         names = set()
