@@ -24,24 +24,64 @@ Conventions (the ones published in foxglove ``CameraCalibration``/``FrameTransfo
   and ``x_cam = R_ext @ (x_world - position)``;
 - ``K`` has square pixels and the principal point at the image centre in OpenCV's
   pixel-centre convention: ``cx = (W - 1) / 2``.
+
+Calibrated cameras (a lab's rig, written by ``viewscale calibrate``) give their pose and
+intrinsics explicitly instead of a placement, and the rig's centre, framing and ``fovy_deg`` do
+not move them::
+
+    cameras:
+      F:
+        position: [1.12, 0.03, 0.71]        # optical centre in the world (= robot base) frame, m
+        R_wc: [[..., ..., ...], [...], [...]]  # camera-to-world rotation, row by row: its columns
+                                            # are the optical axes x right, y down, z forward
+        intrinsics: {width: 640, height: 480, fx: 1085.2, fy: 1084.9, cx: 318.7, cy: 241.2,
+                     distortion: [k1, k2, p1, p2, k3]}   # OpenCV plumb_bob, at width x height
+        reprojection_px: 0.21               # RMS reprojection error of the calibration
+        calibrated_at: 2025-03-01T09:30:00+00:00   # UTC when no offset is given
+
+``K`` of a calibrated camera is its measured one, scaled to the requested image size as a plain
+resize does (pixel-centre convention: ``c' = (c + 0.5) s - 0.5``); ``project`` applies the
+distortion.
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
+from datetime import datetime, timezone
 from functools import cached_property
 from pathlib import Path
 
 import numpy as np
 from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
 from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
-from pydantic import Field
+from pydantic import Field, field_validator, model_validator
 from scipy.spatial.transform import Rotation
 
 from services.core.config import ConfigError, Frozen, read_yaml
 from services.core.topics import WORLD_FRAME
 
 RIG_DIR = Path(__file__).resolve().parent / "rigs"  # shipped as package data
+CALIBRATION_MAX_AGE_DAYS = 30.0  # default: a calibration older than this when an episode is recorded is stale
+CALIBRATION_MAX_ERROR_PX = 1.0  # default: a calibration with a larger RMS reprojection error is refused
+_CALIBRATED_FIELDS = ("position", "R_wc", "intrinsics", "reprojection_px", "calibrated_at")
+
+
+class IntrinsicsSpec(Frozen):
+    width: int = Field(gt=0)  # image width the intrinsics were measured at (px)
+    height: int = Field(gt=0)  # image height the intrinsics were measured at (px)
+    fx: float = Field(gt=0)  # focal length along x (px)
+    fy: float = Field(gt=0)  # focal length along y (px)
+    cx: float  # principal point x (px, pixel-centre convention)
+    cy: float  # principal point y (px, pixel-centre convention)
+    distortion: tuple[float, ...] = ()  # OpenCV plumb_bob k1 k2 p1 p2 [k3]; empty: none
+
+    @field_validator("distortion")
+    @classmethod
+    def _distortion_length(cls, v: tuple[float, ...]) -> tuple[float, ...]:
+        if len(v) not in (0, 4, 5):
+            raise ValueError(f"distortion must be k1 k2 p1 p2 [k3] (4 or 5 numbers), got {len(v)}")
+        return v
 
 
 class CameraSpec(Frozen):
@@ -51,6 +91,80 @@ class CameraSpec(Frozen):
     elevation_deg: float | None = None  # absolute placement instead of yaw/pitch: height angle (90 = top-down)
     distance: float | None = None  # metres from the centre; default: the rig's
     fovy_deg: float | None = None  # vertical field of view; default: the rig's
+    # A calibrated camera instead of a placement: all of these, none of the above.
+    position: tuple[float, float, float] | None = None  # optical centre, world (= robot base) frame (m)
+    R_wc: tuple[tuple[float, float, float], tuple[float, float, float], tuple[float, float, float]] | None = (
+        None  # camera-to-world rotation row by row; its columns are the optical axes (x right, y down, z forward)
+    )
+    intrinsics: IntrinsicsSpec | None = None  # measured K and distortion at one image size
+    reprojection_px: float | None = Field(None, ge=0)  # RMS reprojection error of the calibration (px)
+    calibrated_at: datetime | None = None  # when it was calibrated (UTC when no offset is given)
+    method: str | None = None  # how the pose was measured (board at a measured pose, hand-eye), for the record
+
+    @model_validator(mode="after")
+    def _calibrated_or_placed(self) -> CameraSpec:
+        given = [f for f in _CALIBRATED_FIELDS if getattr(self, f) is not None]
+        if not given:
+            if self.method is not None:
+                raise ValueError("method belongs to a calibrated camera (position, R_wc, intrinsics, ...)")
+            return self
+        missing = [f for f in _CALIBRATED_FIELDS if getattr(self, f) is None]
+        if missing:
+            raise ValueError(f"a calibrated camera needs {', '.join(_CALIBRATED_FIELDS)}; missing {', '.join(missing)}")
+        placed = [
+            f
+            for f in ("yaw_deg", "pitch_deg", "azimuth_deg", "elevation_deg", "distance", "fovy_deg")
+            if getattr(self, f) not in (None, 0.0)
+        ]
+        if placed:
+            raise ValueError(f"a calibrated camera has an explicit pose; drop the placement fields {', '.join(placed)}")
+        R = np.asarray(self.R_wc, dtype=np.float64)
+        if not np.all(np.isfinite(R)) or np.abs(R.T @ R - np.eye(3)).max() > 1e-6 or np.linalg.det(R) < 0:
+            raise ValueError("R_wc must be a rotation matrix (orthonormal rows, determinant +1)")
+        return self
+
+    @property
+    def calibrated(self) -> bool:
+        return self.intrinsics is not None
+
+
+@dataclass(frozen=True)
+class Intrinsics:
+    """A camera's measured pinhole model at one image size (OpenCV conventions)."""
+
+    width: int
+    height: int
+    K: np.ndarray  # (3, 3) at width x height
+    D: np.ndarray  # (N,) plumb_bob distortion, N in (0, 4, 5)
+
+    @classmethod
+    def from_spec(cls, s: IntrinsicsSpec) -> Intrinsics:
+        K = np.array([[s.fx, 0.0, s.cx], [0.0, s.fy, s.cy], [0.0, 0.0, 1.0]])
+        return cls(s.width, s.height, K, np.asarray(s.distortion, dtype=np.float64))
+
+    def K_at(self, width: int, height: int) -> np.ndarray:
+        """K for the image resized to (width, height), in OpenCV's pixel-centre convention."""
+        sx, sy = width / self.width, height / self.height
+        K = self.K.copy()
+        K[0, 0] *= sx
+        K[1, 1] *= sy
+        K[0, 2] = (K[0, 2] + 0.5) * sx - 0.5
+        K[1, 2] = (K[1, 2] + 0.5) * sy - 0.5
+        return K
+
+
+def distort(xy: np.ndarray, D: np.ndarray) -> np.ndarray:
+    """(N, 2) normalised image coordinates -> distorted ones (OpenCV plumb_bob, k1 k2 p1 p2 [k3])."""
+    if len(D) == 0 or not np.any(D):
+        return xy
+    k1, k2, p1, p2 = D[:4]
+    k3 = D[4] if len(D) > 4 else 0.0
+    x, y = xy[:, 0], xy[:, 1]
+    r2 = x * x + y * y
+    radial = 1 + k1 * r2 + k2 * r2**2 + k3 * r2**3
+    xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+    return np.stack([xd, yd], axis=1)
 
 
 class Framing(Frozen):
@@ -79,13 +193,40 @@ class RigSpec(Frozen):
 
 
 class Camera:
-    """One calibrated pinhole camera of a rig (exact in sim: the renderer uses the same numbers)."""
+    """One calibrated pinhole camera of a rig (exact in sim: the renderer uses the same numbers).
 
-    def __init__(self, name: str, position: np.ndarray, R_wc: np.ndarray, fovy_deg: float):
+    A placed camera has an ideal K from ``fovy_deg``; a measured one (``intrinsics``) its
+    calibrated K and distortion, with ``reprojection_px`` and ``calibrated_at`` from its
+    calibration (``fovy_deg`` then follows from fy, for the sim renderer).
+    """
+
+    def __init__(
+        self,
+        name: str,
+        position: np.ndarray,
+        R_wc: np.ndarray,
+        fovy_deg: float | None = None,
+        *,
+        intrinsics: Intrinsics | None = None,
+        reprojection_px: float | None = None,
+        calibrated_at: datetime | None = None,
+    ):
         self.name = name
         self.position = np.asarray(position, dtype=np.float64)  # (3,) world
         self.R_wc = np.asarray(R_wc, dtype=np.float64)  # (3, 3) camera -> world, OpenCV axes
+        self.intrinsics = intrinsics
+        if fovy_deg is None:
+            if intrinsics is None:
+                raise ValueError(f"camera {name!r}: give fovy_deg or intrinsics")
+            fovy_deg = math.degrees(2.0 * math.atan((intrinsics.height / 2.0) / intrinsics.K[1, 1]))
         self.fovy_deg = float(fovy_deg)
+        self.reprojection_px = reprojection_px
+        self.calibrated_at = calibrated_at
+
+    @property
+    def calibrated(self) -> bool:
+        """Measured (``viewscale calibrate``) rather than placed by design."""
+        return self.calibrated_at is not None
 
     @property
     def R_ext(self) -> np.ndarray:
@@ -97,8 +238,17 @@ class Camera:
         return -self.R_ext @ self.position
 
     def K(self, width: int, height: int) -> np.ndarray:
+        if self.intrinsics is not None:
+            return self.intrinsics.K_at(width, height)
         f = (height / 2.0) / math.tan(math.radians(self.fovy_deg) / 2.0)
         return np.array([[f, 0.0, (width - 1) / 2.0], [0.0, f, (height - 1) / 2.0], [0.0, 0.0, 1.0]])
+
+    @property
+    def D(self) -> np.ndarray:
+        """Distortion coefficients (plumb_bob), zeros for a placed camera."""
+        if self.intrinsics is None or len(self.intrinsics.D) == 0:
+            return np.zeros(5)
+        return np.pad(self.intrinsics.D, (0, 5 - len(self.intrinsics.D)))
 
     def to_camera(self, points_world: np.ndarray) -> np.ndarray:
         """(N, 3) world -> (N, 3) optical frame."""
@@ -107,8 +257,12 @@ class Camera:
     def project(self, points_world: np.ndarray, width: int, height: int) -> np.ndarray:
         """(N, 3) world points -> (N, 2) pixel coordinates (u right, v down)."""
         pc = self.to_camera(np.atleast_2d(points_world))
-        uvw = pc @ self.K(width, height).T
-        return uvw[:, :2] / uvw[:, 2:3]
+        K = self.K(width, height)
+        if self.intrinsics is None or not np.any(self.intrinsics.D):
+            uvw = pc @ K.T
+            return uvw[:, :2] / uvw[:, 2:3]
+        xy = distort(pc[:, :2] / pc[:, 2:3], self.intrinsics.D)
+        return xy @ K[:2, :2].T + K[:2, 2]
 
     @cached_property
     def mujoco_xyaxes(self) -> tuple[float, ...]:
@@ -125,7 +279,7 @@ class Camera:
             width=width,
             height=height,
             distortion_model="plumb_bob",
-            D=[0.0] * 5,
+            D=[float(v) for v in self.D],
             K=K.flatten().tolist(),
             R=np.eye(3).flatten().tolist(),
             P=P.flatten().tolist(),
@@ -149,7 +303,17 @@ class Camera:
         t = pose.translation
         K = np.asarray(calib.K, dtype=np.float64).reshape(3, 3)
         fovy = math.degrees(2.0 * math.atan((calib.height / 2.0) / K[1, 1]))
-        return cls(pose.child_frame_id or calib.frame_id, np.array([t.x, t.y, t.z]), R_wc, fovy), K
+        D = np.asarray(calib.D, dtype=np.float64)
+        ideal = (
+            K[0, 0] == K[1, 1]
+            and abs(K[0, 2] - (calib.width - 1) / 2.0) < 1e-9
+            and abs(K[1, 2] - (calib.height - 1) / 2.0) < 1e-9
+            and not np.any(D)
+        )
+        # A measured K (off-centre principal point, fx != fy, distortion) is kept as it is.
+        intr = None if ideal else Intrinsics(int(calib.width), int(calib.height), K, D if len(D) in (4, 5) else D[:0])
+        name = pose.child_frame_id or calib.frame_id
+        return cls(name, np.array([t.x, t.y, t.z]), R_wc, fovy, intrinsics=intr), K
 
 
 def look_at(position: np.ndarray, target: np.ndarray) -> np.ndarray:
@@ -164,6 +328,12 @@ def look_at(position: np.ndarray, target: np.ndarray) -> np.ndarray:
     x /= np.linalg.norm(x)
     y = np.cross(z, x)  # points down in the image
     return np.stack([x, y, z], axis=1)
+
+
+def _orthonormal(R: np.ndarray) -> np.ndarray:
+    """The rotation nearest to ``R`` (a written matrix carries rounding)."""
+    u, _, vt = np.linalg.svd(R)
+    return u @ vt
 
 
 def _orbit(center: np.ndarray, distance: float, azimuth_deg: float, elevation_deg: float) -> np.ndarray:
@@ -181,6 +351,18 @@ class Rig:
         up, right = -base_R[:, 1], base_R[:, 0]  # the base view's image-up and image-right axes
         self.cameras: dict[str, Camera] = {}
         for name, cam in spec.cameras.items():
+            if cam.calibrated:  # a measured camera stays where it is, whatever the framing
+                assert cam.position is not None and cam.R_wc is not None and cam.intrinsics is not None
+                at = cam.calibrated_at
+                self.cameras[name] = Camera(
+                    name,
+                    np.asarray(cam.position, dtype=np.float64),
+                    _orthonormal(np.asarray(cam.R_wc, dtype=np.float64)),
+                    intrinsics=Intrinsics.from_spec(cam.intrinsics),
+                    reprojection_px=cam.reprojection_px,
+                    calibrated_at=at if at is None or at.tzinfo else at.replace(tzinfo=timezone.utc),
+                )
+                continue
             fovy = cam.fovy_deg if cam.fovy_deg is not None else spec.fovy_deg
             if cam.azimuth_deg is not None or cam.elevation_deg is not None:
                 position = _orbit(
@@ -222,6 +404,11 @@ class Rig:
     @property
     def names(self) -> list[str]:
         return list(self.cameras)
+
+    @property
+    def calibrated(self) -> bool:
+        """Every camera measured (``viewscale calibrate``), none placed by design."""
+        return all(c.calibrated for c in self.cameras.values())
 
 
 def available_rigs() -> list[str]:

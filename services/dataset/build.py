@@ -27,7 +27,9 @@ import numpy as np
 
 from services.core.action_spaces import ACTION_DIM, STATE_NAMES, check_space, resolve_state_frame
 from services.core.normalizer import Normalizer, NormalizerStats
+from services.core.rig import CALIBRATION_MAX_AGE_DAYS
 from services.core.tensors import FrameSizeError, decode_resized
+from services.dataset.calibration import calibration_problems, problems_of_info
 from services.dataset.contact_sheet import write_contact_sheet
 from services.dataset.episodes import (
     EpisodeError,
@@ -54,6 +56,8 @@ class BuildParams:
     pad_actions: str = "edge"  # edge: repeat the edge row (diffusion_policy); hold: zero motion past the ends
     val_fraction: float = 0.1  # share of episodes held out for validation (at least one when there are two)
     split_seed: int = 0  # seeds which episodes are held out
+    rig: str | None = None  # calibrated rig file to check camera-space episodes against; default: each episode's
+    max_calibration_age_days: float = CALIBRATION_MAX_AGE_DAYS  # a calibration older at recording time is stale
 
     def __post_init__(self):
         if not self.views:
@@ -70,6 +74,8 @@ class BuildParams:
             raise DatasetError(f"image size {w}x{h} is too small")
         if not 0.0 <= self.val_fraction < 1.0:
             raise DatasetError(f"val_fraction must be in [0, 1), got {self.val_fraction}")
+        if not self.max_calibration_age_days > 0:
+            raise DatasetError(f"max_calibration_age_days must be positive, got {self.max_calibration_age_days}")
         if self.pad_actions not in ("edge", "hold"):
             raise DatasetError(f"pad_actions must be edge or hold, not {self.pad_actions!r}")
         try:
@@ -88,6 +94,16 @@ class BuildParams:
             "max_frame_age_ms": self.max_frame_age_ms,
             "drop_stale_actions": self.drop_stale_actions,
         }
+
+    @property
+    def needs_calibration(self) -> bool:
+        return self.space == "camera" or self.state_frame == "camera"
+
+    def calibration_problems(self, info: dict[str, Any]) -> list[str]:
+        """Why a built episode's calibration is missing or stale (services/dataset/calibration.py)."""
+        if not self.needs_calibration:
+            return []
+        return problems_of_info(info, self.views, self.rig, self.max_calibration_age_days)
 
     def to_json(self) -> dict[str, Any]:
         d = asdict(self)
@@ -159,6 +175,11 @@ def _jpeg_size(data: bytes) -> tuple[int, int] | None:
 def build_episode(src: Path, sha: str, dest: Path, params: BuildParams) -> dict[str, Any]:
     """Decode one MCAP into ``dest`` (which must not exist); returns its episode.json content."""
     ep = load_raw_episode(src, list(params.views))
+    if params.needs_calibration:
+        calib = {v: ep.calib.get(v) for v in params.views}
+        problems = calibration_problems(src.name, calib, ep.meta, params.rig, params.max_calibration_age_days)
+        if problems:
+            raise EpisodeError("; ".join(problems))
     age_ns = int(params.max_frame_age_ms * 1e6) if params.max_frame_age_ms is not None else None
     al = align(ep, list(params.views), age_ns, params.drop_stale_actions)
     size = tuple(params.image_size)
@@ -336,6 +357,23 @@ def _is_up_to_date(out: Path, old: dict[str, Any], wanted: dict[str, Any]) -> bo
     return bool(same) and all((out / f).is_file() for f in (META, NORMALIZER, SUMMARY))
 
 
+def _calibrations_hold(out: Path, old: dict[str, Any], params: BuildParams) -> bool:
+    """Every built episode's calibration still passes (the rig file may have changed since)."""
+    if not params.needs_calibration:
+        return True
+    for s in old.get("sources", []):
+        path = out / EPISODES / str(s.get("dir")) / "episode.json"
+        if not path.is_file():
+            continue  # skipped in that build (--skip-bad)
+        try:
+            info = json.loads(path.read_text())
+        except ValueError:
+            return False
+        if params.calibration_problems(info):
+            return False
+    return True
+
+
 def _start_rebuild(out: Path) -> None:
     """From here on the directory is not a complete dataset until the new manifest lands."""
     (out / EPISODES).mkdir(parents=True, exist_ok=True)
@@ -399,6 +437,13 @@ def _build_episodes(
     try:
         for i, src in enumerate(sources, 1):
             info = reuse.get(src)
+            problems = params.calibration_problems(info) if info is not None else []
+            if problems:  # the rig file changed since the earlier build
+                if not skip_bad:
+                    raise EpisodeError("; ".join(problems))
+                got.skipped.append({"file": str(src), "error": "; ".join(problems)})
+                progress(f"[{i}/{len(sources)}] {src.name}: SKIPPED: {'; '.join(problems)}")
+                continue
             if info is not None:
                 got.reused += 1
                 progress(f"[{i}/{len(sources)}] {src.name}: unchanged, reused")
@@ -553,7 +598,7 @@ def build_dataset(
     old = _read_manifest(out)
     hashes, stats = _hash_sources(sources, old, force, progress)
     wanted = _manifest(params, sources, hashes, stats)
-    if old and not force and _is_up_to_date(out, old, wanted):
+    if old and not force and _is_up_to_date(out, old, wanted) and _calibrations_hold(out, old, params):
         summary = json.loads((out / SUMMARY).read_text())
         progress(f"{out} is up to date ({len(sources)} episodes unchanged)")
         return BuildResult(out, True, reused=len(sources), seconds=time.perf_counter() - t0, summary=summary)

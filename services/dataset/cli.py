@@ -16,6 +16,7 @@ import sys
 from pathlib import Path
 
 from services.core.action_spaces import SPACES, STATE_FRAMES
+from services.core.rig import CALIBRATION_MAX_AGE_DAYS
 from services.core.runtime import OutputError, writable_dir
 from services.dataset.build import BuildParams, build_dataset
 from services.dataset.episodes import EpisodeError
@@ -60,6 +61,8 @@ def _build(args: argparse.Namespace) -> int:
             pad_actions=args.pad_actions,
             val_fraction=args.val_fraction,
             split_seed=args.split_seed,
+            rig=args.rig,
+            max_calibration_age_days=args.max_calibration_age_days,
         )
         if args.jobs < 1:
             raise DatasetError(f"--jobs must be at least 1, got {args.jobs}")
@@ -158,6 +161,19 @@ def add_dataset_commands(subparsers: argparse._SubParsersAction) -> None:
         help="share of episodes held out for validation; the normaliser never sees them (default 0.1)",
     )
     b.add_argument("--split-seed", type=int, default=0, help="seeds which episodes are held out (default 0)")
+    b.add_argument(
+        "--rig",
+        default=None,
+        help="calibrated rig file to check camera-space episodes against (default: the rig each episode names); "
+        "an episode whose recorded calibration differs from it, or is older than --max-calibration-age-days, "
+        "is refused",
+    )
+    b.add_argument(
+        "--max-calibration-age-days",
+        type=float,
+        default=CALIBRATION_MAX_AGE_DAYS,
+        help=f"a calibration made longer than this before an episode is stale (default {CALIBRATION_MAX_AGE_DAYS:g})",
+    )
     b.add_argument("--skip-bad", action="store_true", help="skip unreadable episodes instead of stopping")
     b.add_argument("--force", action="store_true", help="rebuild every episode even if nothing changed")
     b.add_argument(
