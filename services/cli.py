@@ -195,24 +195,12 @@ def _interrupt(signum, _frame):
 
 def _episode(args: argparse.Namespace) -> int:
     """Drive the recorder by hand (hardware sessions): start/stop/discard/status."""
-    from datetime import datetime, timezone
-
-    from services.core import topics
     from services.core.bus import Bus, BusConfig
-    from services.pb.episode_pb2 import EpisodeCommand, EpisodeReply, EpisodeRequest
+    from services.recorder.control import describe_reply, episode_control, episode_request
 
-    command = {
-        "start": EpisodeCommand.EPISODE_COMMAND_START,
-        "stop": EpisodeCommand.EPISODE_COMMAND_STOP,
-        "discard": EpisodeCommand.EPISODE_COMMAND_DISCARD,
-        "status": EpisodeCommand.EPISODE_COMMAND_STATUS,
-    }
-    episode_id = args.id
-    if args.action == "start" and not episode_id:
-        episode_id = f"{args.task}-{args.rig}-{datetime.now(timezone.utc).strftime('%Y%m%dT%H%M%S')}"
-    req = EpisodeRequest(
-        command=command[args.action],
-        episode_id=episode_id or "",
+    req = episode_request(
+        args.action,
+        episode_id=args.id,
         task=args.task,
         rig=args.rig,
         seed=args.seed,
@@ -228,21 +216,14 @@ def _episode(args: argparse.Namespace) -> int:
             password_file=args.password_file,
         )
         with Bus(cfg) as bus:
-            reply = EpisodeReply.FromString(bus.query(topics.EPISODE_CONTROL, req.SerializeToString(), args.timeout))
+            reply = episode_control(bus, req, args.timeout)
     except (TimeoutError, RuntimeError, ConnectionError, ValueError) as exc:  # ValueError: config, credentials
         print(f"error: {exc}", file=sys.stderr)
         return 2
     if not reply.ok:
         print(f"error: {reply.error}", file=sys.stderr)
         return 2
-    m = reply.meta
-    state = "recording" if reply.recording else "idle"
-    print(f"{args.action}: ok ({state})" + (f" episode {m.episode_id}" if m.episode_id else ""))
-    if m.path:
-        print(
-            f"  {m.path}: {m.ticks} ticks, {m.achieved_hz:.1f} Hz, frames {dict(m.frames)}, "
-            f"drops {sum(m.drops.values())}" + (f", flags: {'; '.join(m.flags)}" if m.flags else "")
-        )
+    print(describe_reply(args.action, reply))
     return 0
 
 
@@ -268,6 +249,41 @@ def _credentials(args: argparse.Namespace) -> int:
     print(f"wrote {len(users)} passwords to {out} (owner-only): {out / USERS_FILE} for the router,")
     print(f"  {', '.join(f'{u}.password' for u in users)} for the services (bus.password_file)")
     return 0
+
+
+def _check(args: argparse.Namespace) -> int:
+    from services.core.config import ConfigError
+    from services.session.check import run_check
+
+    overrides: dict[str, list[str]] = {}
+    for item in args.set:
+        service, _, rest = item.partition(".")
+        if not rest:
+            print(f"error: --set {item!r} must look like SERVICE.KEY=VALUE (camera. or robot.)", file=sys.stderr)
+            return 2
+        overrides.setdefault(service, []).append(rest)
+    parts = [p.strip() for p in args.only.split(",")] if args.only else ["cameras", "calibration", "robot"]
+    unknown = sorted(set(parts) - {"cameras", "calibration", "robot"})
+    if unknown:
+        print(f"error: --only {', '.join(unknown)}: choose from cameras, calibration, robot", file=sys.stderr)
+        return 2
+    try:
+        findings = run_check(
+            args.config,
+            overrides,
+            seconds=args.seconds,
+            max_error_px=args.max_error_px,
+            max_age_days=args.max_age_days,
+            parts=parts,
+        )
+    except ConfigError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    for f in findings:
+        print(f.line())
+    failed = [f for f in findings if not f.ok]
+    print(f"{len(findings) - len(failed)} ok, {len(failed)} failed" + (": fix the FAIL lines above" if failed else ""))
+    return 1 if failed else 0
 
 
 def _add_optional(sub, module: str, register: str) -> None:
@@ -394,9 +410,26 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--force", action="store_true", help="replace existing credentials (rotates every password)")
     p.set_defaults(func=_credentials)
 
+    p = sub.add_parser(
+        "check",
+        help="check a rig before a session: cameras open and keep their rate, calibration matches, robot answers",
+    )
+    p.add_argument("--config", required=True, help="the session's YAML (e.g. deploy/real.yaml)")
+    p.add_argument("--seconds", type=float, default=3.0, help="how long to measure each camera (default 3)")
+    p.add_argument("--only", help="some parts only: cameras, calibration, robot (comma-separated)")
+    p.add_argument(
+        "--max-error-px", type=float, default=1.0, help="largest reprojection error accepted (default 1.0 px)"
+    )
+    p.add_argument("--max-age-days", type=float, default=30.0, help="oldest calibration accepted (default 30 days)")
+    p.add_argument(
+        "--set", action="append", default=[], metavar="SERVICE.KEY=VALUE", help="override, e.g. camera.fps=30"
+    )
+    p.set_defaults(func=_check)
+
     _add_optional(sub, "services.dataset.cli", "add_dataset_commands")
     _add_optional(sub, "services.trainer.cli", "add_train_command")
     _add_optional(sub, "services.policy.cli", "add_policy_commands")
+    _add_optional(sub, "services.calibration.cli", "add_calibrate_command")
     return parser
 
 

@@ -1,0 +1,91 @@
+"""`viewscale check --config ...` as a lab runs it before a session: every camera, the calibration
+and the robot, through the same driver registry the services use; a plain-words line per
+finding and a non-zero exit when anything fails. The sim drivers stand in for hardware here
+(world: sim), and a video-file camera that does not exist stands in for an unplugged one."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import yaml
+
+from services.camera.config import CameraConfig
+from services.session.check import CameraReport, camera_findings
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def viewscale(*args: str, timeout: float = 300) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "services.cli", *args], cwd=ROOT, capture_output=True, text=True, timeout=timeout
+    )
+
+
+def sim_config(tmp_path: Path, **camera) -> Path:
+    cfg = {
+        "world": "sim",
+        "camera": {"driver": {"type": "sim", "task": "lift"}, "rig": "three15", "width": 64, "height": 64, "fps": 10.0}
+        | camera,
+        "robot": {"driver": {"type": "sim", "task": "lift"}},
+    }
+    path = tmp_path / "session.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    return path
+
+
+def test_a_working_sim_rig_passes_every_part(tmp_path):
+    proc = viewscale("check", "--config", str(sim_config(tmp_path)), "--seconds", "1")
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    lines = proc.stdout.splitlines()
+    for name in ("F", "FL", "FR"):
+        [line] = [ln for ln in lines if f"camera {name} " in ln]
+        assert line.startswith("ok"), line
+        assert "64x64" in line and "fps of 10 asked" in line, line
+    [robot] = [ln for ln in lines if "robot" in ln and "EEF at" in ln]
+    assert robot.startswith("ok"), robot
+    assert any(ln.startswith("ok") and "calibration" in ln for ln in lines), proc.stdout
+    assert lines[-1].endswith("0 failed"), lines[-1]
+
+
+def test_an_arm_outside_the_workspace_and_a_missing_camera_fail_in_plain_words(tmp_path):
+    cfg = sim_config(tmp_path, driver={"type": "opencv", "cameras": {"F": {"source": str(tmp_path / "none.mp4")}}})
+    proc = viewscale(
+        "check",
+        "--config",
+        str(cfg),
+        "--seconds",
+        "1",
+        "--set",
+        "robot.safety.workspace_lo=[0.15,-0.45,0.5]",
+        "--set",
+        "robot.safety.workspace_hi=[0.8,0.45,0.9]",
+    )
+    assert proc.returncode == 1, proc.stdout + proc.stderr
+    lines = proc.stdout.splitlines()
+    [cam] = [ln for ln in lines if ln.startswith("FAIL") and "camera" in ln]
+    assert "none.mp4" in cam, cam
+    [robot] = [ln for ln in lines if ln.startswith("FAIL") and "robot" in ln]
+    assert "outside the safety workspace on z" in robot, robot
+    assert "Traceback" not in proc.stderr
+
+
+def test_bad_arguments_are_one_error_line(tmp_path):
+    proc = viewscale("check", "--config", str(sim_config(tmp_path)), "--only", "cameras,wheels")
+    assert proc.returncode == 2
+    assert proc.stderr.strip().splitlines() == ["error: --only wheels: choose from cameras, calibration, robot"]
+    proc = viewscale("check", "--config", str(tmp_path / "missing.yaml"))
+    assert proc.returncode == 2
+    assert proc.stderr.strip().startswith("error: config file") and "Traceback" not in proc.stderr
+
+
+def test_a_camera_below_its_rate_fails_and_one_that_delivers_nothing_says_so():
+    cfg = CameraConfig(fps=30.0)
+    slow = CameraReport("F", frames=40, fps=20.0, size=(84, 84), native=(640, 480), latency_ms=35.0, exposure=None)
+    fine = CameraReport("FL", frames=90, fps=29.5, size=(84, 84), native=None, latency_ms=None, exposure=156.0)
+    dead = CameraReport("FR", frames=0, fps=0.0, size=None, native=None, latency_ms=None, exposure=None)
+    f_slow, f_fine, f_dead = camera_findings(cfg, [slow, fine, dead], min_fps_fraction=0.9)
+    assert not f_slow.ok and "20.0 fps of 30 asked" in f_slow.text and "device 640x480, resized" in f_slow.text
+    assert f_fine.ok and "exposure 156" in f_fine.text
+    assert not f_dead.ok and "no frame" in f_dead.text
