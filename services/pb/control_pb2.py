@@ -25,7 +25,7 @@ _sym_db = _symbol_database.Default()
 from services.pb import common_pb2 as services_dot_pb_dot_common__pb2
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x19services/pb/control.proto\x12\x0cviewscale.v1\x1a\x18services/pb/common.proto\"6\n\tEefAction\x12\n\n\x02\x64p\x18\x01 \x03(\x01\x12\x0c\n\x04\x64rot\x18\x02 \x03(\x01\x12\x0f\n\x07gripper\x18\x03 \x01(\x01\"y\n\nEefCommand\x12$\n\x06header\x18\x01 \x01(\x0b\x32\x14.viewscale.v1.Header\x12\x0c\n\x04tick\x18\x02 \x01(\x04\x12\'\n\x06\x61\x63tion\x18\x03 \x01(\x0b\x32\x17.viewscale.v1.EefAction\x12\x0e\n\x06source\x18\x04 \x01(\t\"\x8b\x01\n\rAppliedAction\x12$\n\x06header\x18\x01 \x01(\x0b\x32\x14.viewscale.v1.Header\x12\x0c\n\x04tick\x18\x02 \x01(\x04\x12\'\n\x06\x61\x63tion\x18\x03 \x01(\x0b\x32\x17.viewscale.v1.EefAction\x12\r\n\x05stale\x18\x04 \x01(\x08\x12\x0e\n\x06limits\x18\x05 \x03(\tb\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x19services/pb/control.proto\x12\x0cviewscale.v1\x1a\x18services/pb/common.proto\"6\n\tEefAction\x12\n\n\x02\x64p\x18\x01 \x03(\x01\x12\x0c\n\x04\x64rot\x18\x02 \x03(\x01\x12\x0f\n\x07gripper\x18\x03 \x01(\x01\"y\n\nEefCommand\x12$\n\x06header\x18\x01 \x01(\x0b\x32\x14.viewscale.v1.Header\x12\x0c\n\x04tick\x18\x02 \x01(\x04\x12\'\n\x06\x61\x63tion\x18\x03 \x01(\x0b\x32\x17.viewscale.v1.EefAction\x12\x0e\n\x06source\x18\x04 \x01(\t\"\x9a\x01\n\rAppliedAction\x12$\n\x06header\x18\x01 \x01(\x0b\x32\x14.viewscale.v1.Header\x12\x0c\n\x04tick\x18\x02 \x01(\x04\x12\'\n\x06\x61\x63tion\x18\x03 \x01(\x0b\x32\x17.viewscale.v1.EefAction\x12\r\n\x05stale\x18\x04 \x01(\x08\x12\x0e\n\x06limits\x18\x05 \x03(\t\x12\r\n\x05\x66\x61ult\x18\x06 \x01(\tb\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
@@ -37,5 +37,5 @@ if not _descriptor._USE_C_DESCRIPTORS:
   _globals['_EEFCOMMAND']._serialized_start=125
   _globals['_EEFCOMMAND']._serialized_end=246
   _globals['_APPLIEDACTION']._serialized_start=249
-  _globals['_APPLIEDACTION']._serialized_end=388
+  _globals['_APPLIEDACTION']._serialized_end=403
 # @@protoc_insertion_point(module_scope)

@@ -30,15 +30,17 @@ class EefCommand(_message.Message):
     def __init__(self, header: _Optional[_Union[_common_pb2.Header, _Mapping]] = ..., tick: _Optional[int] = ..., action: _Optional[_Union[EefAction, _Mapping]] = ..., source: _Optional[str] = ...) -> None: ...
 
 class AppliedAction(_message.Message):
-    __slots__ = ("header", "tick", "action", "stale", "limits")
+    __slots__ = ("header", "tick", "action", "stale", "limits", "fault")
     HEADER_FIELD_NUMBER: _ClassVar[int]
     TICK_FIELD_NUMBER: _ClassVar[int]
     ACTION_FIELD_NUMBER: _ClassVar[int]
     STALE_FIELD_NUMBER: _ClassVar[int]
     LIMITS_FIELD_NUMBER: _ClassVar[int]
+    FAULT_FIELD_NUMBER: _ClassVar[int]
     header: _common_pb2.Header
     tick: int
     action: EefAction
     stale: bool
     limits: _containers.RepeatedScalarFieldContainer[str]
-    def __init__(self, header: _Optional[_Union[_common_pb2.Header, _Mapping]] = ..., tick: _Optional[int] = ..., action: _Optional[_Union[EefAction, _Mapping]] = ..., stale: _Optional[bool] = ..., limits: _Optional[_Iterable[str]] = ...) -> None: ...
+    fault: str
+    def __init__(self, header: _Optional[_Union[_common_pb2.Header, _Mapping]] = ..., tick: _Optional[int] = ..., action: _Optional[_Union[EefAction, _Mapping]] = ..., stale: _Optional[bool] = ..., limits: _Optional[_Iterable[str]] = ..., fault: _Optional[str] = ...) -> None: ...

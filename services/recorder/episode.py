@@ -3,15 +3,16 @@ is flagged when it closes. No files, threads or clocks in here; the recorder fee
 
 Counted per topic key: messages written, malformed payloads, sequence gaps (a forward jump
 counts the messages skipped; a jump back is a publisher restart), plus the robot-state
-capture times (for the achieved rate), stale ticks (the robot held still for want of a command)
-and clipped ticks (the safety layer changed the command).
+capture times (for the achieved rate), stale ticks (the robot held still for want of a command),
+clipped ticks (the safety layer changed the command) and fault ticks (the arm could not move: a
+protective stop, a lost connection; ``AppliedAction.fault``).
 
 Flags, in this order: events (liveliness losses and restarts, write errors) as they happened;
 ``low rate`` when the robot state arrived below ``min_rate_fraction`` of the control rate (real
 time only: a lockstep session runs as fast as the machine goes, so its rate says nothing);
 recorder queue drops; malformed payloads; publisher restarts; sequence gaps not explained by
-our own drops; stale ticks; clipped ticks; fewer robot states than the ticks the source says
-it published; a camera whose frame count differs from the tick count.
+our own drops; robot faults; stale ticks; clipped ticks; fewer robot states than the ticks the
+source says it published; a camera whose frame count differs from the tick count.
 """
 
 from __future__ import annotations
@@ -52,6 +53,7 @@ class EpisodeCounts:
     cameras: set[str] = field(default_factory=set)
     stale: int = 0  # applied actions that were a hold for want of a command
     clipped: int = 0  # applied actions the safety layer changed
+    faults: Counter = field(default_factory=Counter)  # robot fault -> ticks it lasted (the arm stopped)
     state_n: int = 0
     state_first: int = 0
     state_last: int = 0
@@ -118,6 +120,8 @@ class EpisodeCounts:
         if key == APPLIED_ACTION.key:
             self.stale += bool(msg.stale)
             self.clipped += bool(len(msg.limits))
+            if msg.fault:
+                self.faults[msg.fault] += 1
         if key == ROBOT_STATE.key:
             if self.state_n == 0:
                 self.state_first = stamp_ns
@@ -168,6 +172,11 @@ def episode_meta(
     unexplained = {k: m for k, m in ep.missing.items() if m > drops.get(k, 0)}
     if unexplained:
         flags.append(f"sequence gaps: messages lost upstream ({fmt_counts(unexplained)})")
+    if ep.faults:
+        faults = list(ep.faults.items())
+        what = "; ".join(f"{fault} ({n} ticks)" for fault, n in faults[:3])
+        what += f"; {len(faults) - 3} other faults" if len(faults) > 3 else ""
+        flags.append(f"robot fault: {sum(ep.faults.values())} ticks the arm was stopped: {what}")
     if ep.stale:
         flags.append(f"stale: {ep.stale} ticks held still without a fresh command (teleop late or missing)")
     if ep.clipped:

@@ -10,8 +10,9 @@ One tick k:
      a stale action); in lockstep ``command_timeout_s``;
   3. hand it to the safety layer (``services.robot.safety``), which executes it within the
      workspace and speed limits -- or holds still with the last gripper target if none came
-     (flagged ``stale``) -- and publish AppliedAction(tick=k): the action that really ran between
-     state k and k+1, with the limits that changed it.
+     (flagged ``stale``), or sends nothing while the driver reports a fault (``fault``) -- and
+     publish AppliedAction(tick=k): the action that really ran between state k and k+1, with
+     the limits that changed it and the fault that stopped the arm.
 So an episode always has exactly one applied action per observation, which is what
 demonstrations are made of.
 """
@@ -63,6 +64,7 @@ class ControlLoop:
         self.episode_id = ""
         self.stale_ticks = 0
         self.clipped_ticks = 0  # ticks whose command the safety layer changed
+        self.fault_ticks = 0  # ticks the arm could not move (a driver fault: protective stop, lost connection)
         self.rejected = Counter()  # reason -> count of commands we could not use
         self._seq = 0
         self._cv = threading.Condition()
@@ -106,6 +108,7 @@ class ControlLoop:
         self.episode_id = episode_id
         self.stale_ticks = 0
         self.clipped_ticks = 0
+        self.fault_ticks = 0
         self.robot.begin_episode()
         with self._cv:
             self._latest = None
@@ -139,6 +142,7 @@ class ControlLoop:
         ran = self.robot.apply(self._wait_command(self.tick, deadline))
         self.stale_ticks += ran.stale
         self.clipped_ticks += bool(ran.limits)
+        self.fault_ticks += bool(ran.fault)
         self._applied_pub.put(
             AppliedAction(
                 header=Header(stamp_ns=now_ns(), seq=self._seq, frame_id=topics.WORLD_FRAME),
@@ -146,6 +150,7 @@ class ControlLoop:
                 action=action_msg(ran.action),
                 stale=ran.stale,
                 limits=list(ran.limits),
+                fault=ran.fault,
             )
         )
         self.tick += 1
@@ -158,8 +163,9 @@ class ControlLoop:
             if self.realtime:
                 rate.sleep()
         log.info(
-            "control loop stopped at tick %d (%d stale ticks, %d clipped)",
+            "control loop stopped at tick %d (%d stale ticks, %d clipped, %d faulted)",
             self.tick,
             self.stale_ticks,
             self.clipped_ticks,
+            self.fault_ticks,
         )

@@ -3,6 +3,10 @@
 Per control tick it takes the command the loop received (or none) and decides what the driver
 executes, in this order:
 
+0. a driver fault (``RobotDriver.fault``: a protective stop, a lost connection): when it begins,
+   log it as an error and stop the arm (``RobotDriver.stop``); while it lasts send the driver
+   nothing and report a hold carrying the fault (the loop puts it in ``AppliedAction.fault``, the
+   recorder flags the episode); once it clears, commands move the arm again;
 1. no fresh command: hold still (zero motion, the last gripper target); once no fresh command
    has come for ``command_timeout_s``, stop the arm (``RobotDriver.stop``) and keep holding
    until commands come again;
@@ -35,6 +39,7 @@ from services.robot.base import RobotDriver
 log = logging.getLogger(__name__)
 
 SPEED, ROTATION, WORKSPACE, GRIPPER = "speed", "rotation", "workspace", "gripper"
+MAX_FAULT = 200  # characters of a fault kept on the wire (a session string is at most 256)
 
 
 class SafetyConfig(Frozen):
@@ -58,6 +63,7 @@ class Executed:
     action: EefDelta  # what ran (base frame)
     stale: bool  # no fresh command: a hold
     limits: tuple[str, ...] = ()  # the limits that changed the command (speed, rotation, workspace, gripper)
+    fault: str = ""  # why the arm could not move (the driver's fault); then nothing was sent to it
 
 
 class Safety:
@@ -75,6 +81,8 @@ class Safety:
         self._last_fresh = time.monotonic()
         self.stopped = False  # the arm was stopped for want of commands
         self.stops = 0  # times that happened
+        self.fault = ""  # the driver's current fault ('' when the arm can move)
+        self.faults = 0  # faults begun (each stopped the arm)
 
     def begin_episode(self) -> None:
         """A new episode: gripper target open, the command timeout counted from now."""
@@ -113,6 +121,13 @@ class Safety:
     def apply(self, command: EefDelta | None) -> Executed:
         """Execute one tick: ``command`` within the limits, or a hold when it is None."""
         now = time.monotonic()
+        fault = self.driver.fault()[:MAX_FAULT]
+        if fault:
+            return self._faulted(fault, command, now)
+        if self.fault:
+            log.warning("robot fault cleared (was: %s): commands move the arm again", self.fault)
+            self.fault = ""
+            self._last_fresh = now
         if command is None:
             if not self.stopped and now - self._last_fresh >= self.cfg.command_timeout_s:
                 self.stopped = True
@@ -130,6 +145,16 @@ class Safety:
         self.driver.apply(action)
         self._gripper = action.gripper
         return Executed(action, stale=False, limits=limits)
+
+    def _faulted(self, fault: str, command: EefDelta | None, now: float) -> Executed:
+        if fault != self.fault:
+            self.faults += 1
+            log.error("robot fault: %s; the arm is stopped and gets no commands until it clears", fault)
+            self.driver.stop()
+        self.fault = fault
+        if command is not None:
+            self._last_fresh = now  # the teleop is there: no command timeout on top of the fault
+        return Executed(EefDelta.hold(self._gripper), stale=command is None, fault=fault)
 
     def close(self) -> None:
         self.driver.close()

@@ -74,6 +74,17 @@ def test_stale_and_clipped_ticks_are_counted_and_flagged():
     ]
 
 
+def test_robot_fault_ticks_are_counted_per_fault_and_flagged_before_stale_ones():
+    ep = opened()
+    for k, fault in enumerate(["", "protective stop", "protective stop", "connection lost", ""]):
+        ep.count("robot/state", RobotState(header=Header(seq=k), tick=k), T0 + k * PERIOD)
+        ep.count("robot/applied", AppliedAction(header=Header(seq=k), tick=k, stale=k == 3, fault=fault), 0)
+    assert list(meta(ep, ticks=5).flags) == [
+        "robot fault: 3 ticks the arm was stopped: protective stop (2 ticks); connection lost (1 ticks)",
+        "stale: 1 ticks held still without a fresh command (teleop late or missing)",
+    ]
+
+
 def test_gaps_are_upstream_losses_unless_our_queues_dropped_them():
     ep = opened()
     feed(ep, [k for k in range(20) if k not in (5, 6)])  # seq 5 and 6 never arrive

@@ -104,6 +104,32 @@ def test_no_commands_hold_still_then_stop_the_arm_then_resume():
     assert safe.apply(None).action.gripper == 0.0  # a new episode starts open
 
 
+class FaultyArm(PointArm):
+    """A PointArm whose fault the test sets."""
+
+    fault_text = ""
+
+    def fault(self) -> str:
+        return self.fault_text
+
+
+def test_a_driver_fault_stops_the_arm_once_sends_nothing_and_is_reported_until_it_clears():
+    arm = FaultyArm()
+    safe = Safety(arm, SafetyConfig(), 20.0)
+    safe.read()
+    safe.apply(EefDelta(np.array([0.01, 0.0, 0.0]), ZERO, 0.6))
+    arm.fault_text = "protective stop"
+    ran = [safe.apply(EefDelta(np.array([0.01, 0.0, 0.0]), ZERO, 0.0)), safe.apply(None)]
+    assert [r.fault for r in ran] == ["protective stop"] * 2 and [r.stale for r in ran] == [False, True]
+    assert all(np.array_equal(r.action.dp, ZERO) and r.action.gripper == 0.6 for r in ran)  # a hold
+    assert arm.stops == 1 and safe.faults == 1 and len(arm.applied) == 1  # stopped once; nothing sent
+    arm.fault_text = "x" * 1000
+    assert len(safe.apply(None).fault) == 200 and arm.stops == 2  # bounded on the wire; a new fault stops again
+    arm.fault_text = ""
+    ran = safe.apply(EefDelta(np.array([0.01, 0.0, 0.0]), ZERO, 0.0))
+    assert ran.fault == "" and safe.fault == "" and arm.applied[-1] is ran.action
+
+
 def test_a_box_that_is_not_a_box_is_refused():
     with pytest.raises(ValueError, match="workspace_lo"):
         SafetyConfig(workspace_lo=(0.5, 0.0, 0.0), workspace_hi=(0.4, 1.0, 1.0))
