@@ -5,16 +5,21 @@ through ``services.core.registry``): the sim's scripted expert (``type: scripted
 policy behind the policy server (``type: policy``), or a lab's own class (``type:
 package.module:Class``, with a nested ``Config`` for its settings). A driver that looks at the
 cameras names them in ``cameras``; the service then hands it each camera's frame of the tick.
+A driver an operator holds (the keyboard, the SpaceMouse: ``services/teleop/device.py``) also
+gets the service's bus through ``attach``, for its episode keys.
 """
 
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from services.core.robot_types import EefDelta
 from services.pb.sensors_pb2 import RobotState, TaskState
+
+if TYPE_CHECKING:
+    from services.core.bus import Bus
 
 
 @dataclass(frozen=True)
@@ -41,6 +46,10 @@ class TeleopDriver(ABC):
     @abstractmethod
     def act(self, state: RobotState, task: TaskState | None, frames: dict[str, CameraFrame]) -> EefDelta:
         """The command answering ``state`` (same tick); ``frames``: one per camera in ``cameras``."""
+
+    def attach(self, bus: Bus) -> None:
+        """The service's open bus, before the first tick (default: unused). Drivers with episode keys
+        send the recorder's control requests on it."""
 
     def close(self) -> None:
         """Release the device (default: nothing to release)."""

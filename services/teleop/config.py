@@ -33,9 +33,61 @@ class PolicyTeleopConfig(DriverConfig):
     stats_file: str | None = None  # append each episode's runner statistics here (JSON lines)
 
 
+class DeviceTeleopConfig(DriverConfig):
+    """What every hand-held device shares (``services/teleop/device.py``): a full deflection (a held
+    key, the puck pushed all the way) commands ``speed`` x the max per-tick step; episode keys
+    drive the recorder's control queryable and record these task/rig/rate with the episode."""
+
+    max_dp: float = Field(0.02, gt=0, le=0.1)  # m per tick at full deflection, speed 1 (the expert's free-space step)
+    max_drot: float = Field(0.1, gt=0, le=0.5)  # rad per tick at full deflection, speed 1 (the scripted expert's cap)
+    speed: float = Field(0.5, gt=0, le=1)  # fraction of max_dp and max_drot commanded at full deflection
+    task: str = ""  # task name recorded with episodes started from the device
+    rig: str = ""  # rig name recorded with those episodes
+    control_hz: float = Field(20.0, gt=0)  # control rate recorded with those episodes
+    episode_timeout_s: float = Field(30.0, gt=0)  # how long an episode key waits for the recorder's answer
+
+
+class KeyboardTeleopConfig(DeviceTeleopConfig):
+    """Keys of a plain terminal (no X server): ``services/teleop/keyboard.py`` lists them."""
+
+    type: Literal["keyboard"] = "keyboard"
+    tty: str | None = None  # terminal to read keys from (e.g. /dev/pts/3); default: stdin, which must be a terminal
+    speed: float = Field(0.25, gt=0, le=1)  # starting fraction of max_dp and max_drot; '-' and '=' change it
+    speed_step: float = Field(1.5, gt=1)  # '=' multiplies the speed by this, '-' divides it (within 0.05 and 1)
+    deadman_ms: float = Field(600.0, gt=0)  # a key not seen again this long holds still (> the key-repeat delay)
+    repeat_ms: float = Field(150.0, gt=0)  # once a key auto-repeats: hold still this long after its last repeat
+
+    @model_validator(mode="after")
+    def _windows(self) -> KeyboardTeleopConfig:
+        if self.repeat_ms > self.deadman_ms:
+            raise ValueError(f"repeat_ms ({self.repeat_ms}) must not exceed deadman_ms ({self.deadman_ms})")
+        return self
+
+
+class SpaceMouseTeleopConfig(DeviceTeleopConfig):
+    """A 3Dconnexion SpaceMouse through ``pyspacemouse`` (``pip install -e '.[hardware]'``):
+    ``services/teleop/spacemouse.py`` lists its buttons."""
+
+    type: Literal["spacemouse"] = "spacemouse"
+    device: str | None = None  # pyspacemouse name (SpaceMouseCompact, ...); default: the first found
+    device_index: int = Field(0, ge=0)  # which of several connected devices of that name
+    path: str | None = None  # open this HID node (e.g. /dev/hidraw3) instead of searching by name
+    speed: float = Field(1.0, gt=0, le=1)  # fraction of max_dp and max_drot at full deflection of the puck
+    deadzone: float = Field(0.05, ge=0, lt=1)  # fraction of full deflection read as zero, per axis (rest is never 0)
+    yaw_deg: float = 0.0  # puck frame turned about base z; 0: puck right/away/up = base +x/+y/+z
+    rotation: bool = True  # False: ignore the puck's tilt and twist (translation and gripper only)
+    deadman_ms: float = Field(100.0, gt=0)  # no report for this long: hold still (a displaced puck reports every ~8 ms)
+    gripper_button: str = "LEFT"  # click: toggle the gripper; long press while recording: stop the episode as a failure
+    episode_button: str = "RIGHT"  # long press: start an episode, or stop the recording one as a success
+    long_press_s: float = Field(1.0, gt=0)  # how long a button is held for an episode command (both held: discard)
+    poll_ms: float = Field(4.0, gt=0)  # how often the device is read for new reports
+
+
 TELEOP_DRIVERS: Registry[TeleopDriver] = Registry("teleop", TeleopDriver)
 TELEOP_DRIVERS.register("scripted", "sim.backends:ScriptedTeleop", ScriptedTeleopConfig)
 TELEOP_DRIVERS.register("policy", "services.teleop.policy:PolicyTeleop", PolicyTeleopConfig)
+TELEOP_DRIVERS.register("keyboard", "services.teleop.keyboard:KeyboardTeleop", KeyboardTeleopConfig)
+TELEOP_DRIVERS.register("spacemouse", "services.teleop.spacemouse:SpaceMouseTeleop", SpaceMouseTeleopConfig)
 
 
 class TeleopConfig(Frozen):

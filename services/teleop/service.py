@@ -56,6 +56,7 @@ class TeleopService:
         self._frames: dict[str, deque[CameraFrame]] = {c: deque(maxlen=8) for c in driver.cameras}
         for cam in driver.cameras:
             bus.subscribe(topics.camera_image(cam), self._on_frame, on_error=self._on_malformed)
+        driver.attach(bus)
 
     def __enter__(self) -> TeleopService:
         self.bus.announce("teleop")
