@@ -146,3 +146,30 @@ def test_episode_reads_back_with_an_image_channel_per_rig_camera(session):
             if len(seen) == len(topics):
                 break
         assert len(seen) == len(topics)
+
+
+def test_the_real_profile_adds_the_hardware_services_and_leaves_the_sim_session_alone(engine):
+    """`docker compose --profile real ...` (README "Real robot"): the robot, camera, teleop and
+    recorder services read deploy/real.yaml from an image with the hardware extra, the camera gets
+    the video and USB devices, and none of them takes the sim session's TASK/RIG overrides (which
+    would replace the calibrated rig real.yaml names). Plain `docker compose up` is unchanged."""
+    import json
+
+    proc = run(["bash", str(SCRIPTS / "ensure-compose.sh")], timeout=900)
+    assert proc.returncode == 0, output(proc)
+    sim = run(["docker", "compose", "config", "--services"], timeout=60)
+    assert sim.returncode == 0, output(sim)
+    assert set(sim.stdout.split()) == {"router", "sim", "teleop", "recorder", "session"}
+    real = run(["docker", "compose", "--profile", "real", "config", "--format", "json"], timeout=60)
+    assert real.returncode == 0, output(real)
+    services = json.loads(real.stdout)["services"]
+    hardware = {"robot", "camera", "teleop-device", "teleop-keyboard", "recorder-real"}
+    assert hardware <= set(services)
+    for name in hardware:
+        svc = services[name]
+        assert "deploy/real.yaml" in svc["command"], (name, svc["command"])
+        assert svc["build"]["args"]["EXTRAS"] == "hardware", name
+        assert not {"VIEWSCALE_RIG", "VIEWSCALE_TASK"} & set(svc.get("environment", {})), name
+    assert {"c 81:* rmw", "c 189:* rmw"} <= set(services["camera"]["device_cgroup_rules"])
+    assert services["teleop-keyboard"]["tty"] and services["teleop-keyboard"]["stdin_open"]
+    assert "lab" in services["robot"]["networks"] and "lab" in services["camera"]["networks"]

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 
 from services.core import topics
 from services.core.config import ConfigError
@@ -173,14 +174,29 @@ def test_bad_config_is_one_clear_line():
     assert "control_hz" in proc.stderr and "Traceback" not in proc.stderr
 
 
+def real_session(tmp_path: Path, section: str, driver: dict) -> Path:
+    """deploy/real.yaml (world: real, its bus and sections) with one service's driver replaced."""
+    cfg = yaml.safe_load((ROOT / "deploy" / "real.yaml").read_text())
+    cfg[section]["driver"] = driver
+    path = tmp_path / "real.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    return path
+
+
 @pytest.mark.parametrize(
-    "module, driver", [("services.teleop", "scripted"), ("services.robot", "sim"), ("services.camera", "sim")]
+    "module, section, driver",
+    [
+        ("services.teleop", "teleop", "scripted"),
+        ("services.robot", "robot", "sim"),
+        ("services.camera", "camera", "sim"),
+    ],
 )
-def test_a_sim_only_driver_is_refused_in_a_real_session_at_start_up(module, driver):
+def test_a_sim_only_driver_is_refused_in_a_real_session_at_start_up(module, section, driver, tmp_path):
     # deploy/real.yaml says world: real; the scripted expert would wait for a task state no real
     # robot publishes and leave every tick stale, a sim camera would record a rendered scene.
+    config = real_session(tmp_path, section, {"type": driver})
     proc = subprocess.run(
-        [sys.executable, "-m", module, "--config", "deploy/real.yaml", "--set", f"driver.type={driver}"],
+        [sys.executable, "-m", module, "--config", str(config)],
         cwd=ROOT,
         capture_output=True,
         text=True,
@@ -192,9 +208,10 @@ def test_a_sim_only_driver_is_refused_in_a_real_session_at_start_up(module, driv
         assert "task state" in proc.stderr
 
 
-def test_a_driver_that_cannot_be_imported_is_one_line_before_any_connection():
+def test_a_driver_that_cannot_be_imported_is_one_line_before_any_connection(tmp_path):
+    config = real_session(tmp_path, "teleop", {"type": "mylab.teleop:MyDevice"})
     proc = subprocess.run(
-        [sys.executable, "-m", "services.teleop", "--config", "deploy/real.yaml"],
+        [sys.executable, "-m", "services.teleop", "--config", str(config)],
         cwd=ROOT,
         capture_output=True,
         text=True,
