@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: install lint demo test proto bench clean
+.PHONY: install lint demo test test-long proto bench clean
 
 $(STAMP): pyproject.toml
 	$(PY) -m venv $(VENV)
@@ -24,6 +24,10 @@ lint: $(STAMP)
 
 test: install lint
 	MUJOCO_GL=$${MUJOCO_GL:-egl} $(BIN)/python -m pytest $(PYTEST_ARGS)
+
+# The checks that take minutes of training (marker `long`): the overfit test (about 5 min).
+test-long: install
+	MUJOCO_GL=$${MUJOCO_GL:-egl} $(BIN)/python -m pytest -m long $(PYTEST_ARGS)
 
 demo: install
 	MUJOCO_GL=$${MUJOCO_GL:-egl} bash deploy/demo.sh
