@@ -341,9 +341,12 @@ class RemoteDenoiser:
     async def _call(self, view: str, req: policy_pb2.DenoiseRequest, deadline: float) -> policy_pb2.DenoiseReply | None:
         s = self._streams[view]
         try:
-            await asyncio.wait_for(s.call.write(req), timeout=max(0.0, deadline - time.monotonic()))
-            reply = await asyncio.wait_for(s.call.read(), timeout=max(0.0, deadline - time.monotonic()))
-        except asyncio.TimeoutError:
+            # One deadline over the write and the read, on the loop's clock (time.monotonic):
+            # no task per await, as wait_for would create (measurable at a few ms per step).
+            async with asyncio.timeout_at(deadline):
+                await s.call.write(req)
+                reply = await s.call.read()
+        except TimeoutError:
             self._drop(view, f"worker {s.worker.address} late (step deadline)")
             return None
         except grpc.aio.AioRpcError as exc:
@@ -381,7 +384,10 @@ class RemoteDenoiser:
             v: policy_pb2.DenoiseRequest(step=policy_pb2.DenoiseStep(k=k, x=to_tensor(xs[v].astype(np.float32))))
             for v in views
         }
-        replies = await asyncio.gather(*(self._call(v, reqs[v], deadline) for v in views))
+        if len(views) == 1:  # no gather (and its task) for a single view
+            replies = [await self._call(views[0], reqs[views[0]], deadline)]
+        else:
+            replies = await asyncio.gather(*(self._call(v, reqs[v], deadline) for v in views))
         eps, eps_u = {}, {}
         for v, r in zip(views, replies):
             if r is None:
