@@ -144,13 +144,18 @@ class Intrinsics:
 
     def K_at(self, width: int, height: int) -> np.ndarray:
         """K for the image resized to (width, height), in OpenCV's pixel-centre convention."""
-        sx, sy = width / self.width, height / self.height
-        K = self.K.copy()
-        K[0, 0] *= sx
-        K[1, 1] *= sy
-        K[0, 2] = (K[0, 2] + 0.5) * sx - 0.5
-        K[1, 2] = (K[1, 2] + 0.5) * sy - 0.5
-        return K
+        return scale_K(self.K, (self.width, self.height), (width, height))
+
+
+def scale_K(K: np.ndarray, size: tuple[int, int], new_size: tuple[int, int]) -> np.ndarray:
+    """K of an image of ``size`` (w, h) resized to ``new_size``, in OpenCV's pixel-centre convention."""
+    sx, sy = new_size[0] / size[0], new_size[1] / size[1]
+    K = np.array(K, dtype=np.float64)
+    K[0, 0] *= sx
+    K[1, 1] *= sy
+    K[0, 2] = (K[0, 2] + 0.5) * sx - 0.5
+    K[1, 2] = (K[1, 2] + 0.5) * sy - 0.5
+    return K
 
 
 def distort(xy: np.ndarray, D: np.ndarray) -> np.ndarray:

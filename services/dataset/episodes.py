@@ -26,7 +26,7 @@ import numpy as np
 
 from services.core import topics
 from services.core.geometry import quat_wxyz_to_matrix
-from services.core.rig import Camera
+from services.core.rig import Camera, scale_K
 from services.core.validation import Invalid, check
 from services.recorder.reader import EpisodeReadError, read_episode
 
@@ -50,13 +50,7 @@ class CameraCalib:
 
     def K_at(self, width: int, height: int) -> np.ndarray:
         """K for the image resized to (width, height), in OpenCV's pixel-centre convention."""
-        sx, sy = width / self.width, height / self.height
-        K = self.K.copy()
-        K[0, 0] *= sx
-        K[1, 1] *= sy
-        K[0, 2] = (K[0, 2] + 0.5) * sx - 0.5
-        K[1, 2] = (K[1, 2] + 0.5) * sy - 0.5
-        return K
+        return scale_K(self.K, (self.width, self.height), (width, height))
 
     def to_json(self, width: int | None = None, height: int | None = None) -> dict[str, Any]:
         w, h = width or self.width, height or self.height
