@@ -122,6 +122,15 @@ def optimizer_from_tensors(
     optim.load_state_dict({"state": state, "param_groups": groups})
 
 
+def _mode_by_umask(path: Path) -> None:
+    """safetensors creates its files 0600 whatever the umask; give them the mode any file of the
+    user gets (0644 under umask 022), or a server or worker running as another user (a container's)
+    cannot read the weights next to a readable policy.json."""
+    mask = os.umask(0)
+    os.umask(mask)
+    os.chmod(path, 0o666 & ~mask)
+
+
 def save_checkpoint(
     run_dir: str | Path,
     step: int,
@@ -141,6 +150,8 @@ def save_checkpoint(
     save_file(_contiguous(serve_state), str(tmp / MODEL_FILE), metadata={"format": FORMAT})
     _write_json(tmp / POLICY_FILE, {"format": FORMAT, "version": VERSION, "step": step, **info})
     save_file(_contiguous(train_tensors), str(tmp / STATE_FILE))
+    for name in (MODEL_FILE, STATE_FILE):
+        _mode_by_umask(tmp / name)
     _write_json(tmp / STATE_JSON, {"step": step, **train_json})
     shutil.rmtree(path, ignore_errors=True)
     os.replace(tmp, path)

@@ -111,6 +111,12 @@ def test_save_load_and_resume_continue_the_same_run(sim_dataset, tmp_path):
         different = [k for k in a if not torch.equal(a[k], b[k])]
         assert different == []
     assert [h["loss"] for h in straight.history] == [h["loss"] for h in second.history]
+    # Readable as any file the user writes (safetensors alone makes them 0600), so a server or a
+    # worker running as another user, a container's, can load the weights.
+    mask = os.umask(0)
+    os.umask(mask)
+    for f in second.checkpoint.iterdir():
+        assert f.stat().st_mode & 0o777 == 0o666 & ~mask, (f.name, oct(f.stat().st_mode))
 
     # the next batch after the resume point is the one the uninterrupted run took
     data = load_train_data(cfg)
