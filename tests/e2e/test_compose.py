@@ -173,3 +173,25 @@ def test_the_real_profile_adds_the_hardware_services_and_leaves_the_sim_session_
     assert {"c 81:* rmw", "c 189:* rmw"} <= set(services["camera"]["device_cgroup_rules"])
     assert services["teleop-keyboard"]["tty"] and services["teleop-keyboard"]["stdin_open"]
     assert "lab" in services["robot"]["networks"] and "lab" in services["camera"]["networks"]
+
+
+def test_the_serve_profile_runs_a_server_over_every_worker_replica(engine):
+    """`docker compose --profile serve up --scale policy-worker=N policy policy-worker`: the server
+    reaches every worker replica through one DNS name (gRPC round-robin), both read the checkpoint
+    volume, the image has the `train` extra, and only the server's port is published, on loopback."""
+    import json
+
+    proc = run(["bash", str(SCRIPTS / "ensure-compose.sh")], timeout=900)
+    assert proc.returncode == 0, output(proc)
+    env = dict(os.environ, VIEWSCALE_CHECKPOINT="/srv/ckpt")
+    serve = run(["docker", "compose", "--profile", "serve", "config", "--format", "json"], timeout=60, env=env)
+    assert serve.returncode == 0, output(serve)
+    services = json.loads(serve.stdout)["services"]
+    server, worker = services["policy"], services["policy-worker"]
+    assert "dns:///policy-worker:7001" in server["command"] and "--checkpoint" in worker["command"]
+    for svc in (server, worker):
+        assert svc["build"]["args"]["EXTRAS"] == "train"
+        assert any(v["source"] == "/srv/ckpt" and v["target"] == "/checkpoint" for v in svc["volumes"])
+    [port] = server["ports"]
+    assert port["host_ip"] == "127.0.0.1" and port["target"] == 50051
+    assert "ports" not in worker
