@@ -192,6 +192,17 @@ def run_check(
     sizes: dict[str, tuple[int, int]] | None = None
     if parts & {"cameras", "calibration"}:
         cam_cfg = load_config(CameraConfig, config, overrides.get("camera", []), section="camera")
+        try:
+            load_rig(cam_cfg.rig)  # both parts need it: say once what is wrong with it
+        except ConfigError as exc:
+            findings.append(
+                Finding(
+                    "calibration",
+                    False,
+                    f"camera.rig {cam_cfg.rig!r}: {_describe_error(exc)} (write one with `viewscale calibrate rig`)",
+                )
+            )
+            parts -= {"cameras", "calibration"}
         if "cameras" in parts:
             try:
                 reports = measure_cameras(cam_cfg, seconds)

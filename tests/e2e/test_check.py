@@ -78,6 +78,12 @@ def test_bad_arguments_are_one_error_line(tmp_path):
     proc = viewscale("check", "--config", str(tmp_path / "missing.yaml"))
     assert proc.returncode == 2
     assert proc.stderr.strip().startswith("error: config file") and "Traceback" not in proc.stderr
+    proc = viewscale(
+        "check", "--config", str(sim_config(tmp_path, rig=str(tmp_path / "lab.yaml"))), "--only", "cameras,calibration"
+    )
+    assert proc.returncode == 1, proc.stdout + proc.stderr
+    [line] = [ln for ln in proc.stdout.splitlines() if ln.startswith("FAIL")]
+    assert "lab.yaml" in line and "does not exist" in line and "viewscale calibrate rig" in line, line
 
 
 def test_a_camera_below_its_rate_fails_and_one_that_delivers_nothing_says_so():
