@@ -19,20 +19,11 @@ import cv2
 import numpy as np
 
 from services.core.geometry import rot6d_to_matrix
+from services.core.rig import scale_K
 
 WHITE, CYAN, MAGENTA, YELLOW = (255, 255, 255), (0, 255, 255), (255, 0, 255), (255, 255, 0)
 AXES = ((255, 60, 60), (60, 255, 60), (80, 120, 255))
 LABEL_H = 18
-
-
-def _scaled_K(K: np.ndarray, src: tuple[int, int], dst: tuple[int, int]) -> np.ndarray:
-    sx, sy = dst[0] / src[0], dst[1] / src[1]
-    K = np.array(K, dtype=np.float64)
-    K[0, 0] *= sx
-    K[1, 1] *= sy
-    K[0, 2] = (K[0, 2] + 0.5) * sx - 0.5
-    K[1, 2] = (K[1, 2] + 0.5) * sy - 0.5
-    return K
 
 
 def _project_cam(points_cam: np.ndarray, K: np.ndarray) -> np.ndarray:
@@ -164,7 +155,7 @@ def contact_sheet(ds_dir: Path, meta: dict[str, Any], max_episodes: int = 3, til
             tick, ends = np.load(d / f"{v}.tick.npy"), np.load(d / f"{v}.ends.npy")
             K = pos_cam = path = axes_cam = None
             if calib is not None:
-                K = _scaled_K(np.asarray(calib["K"]), (W, H), tile)
+                K = scale_K(np.asarray(calib["K"]), (W, H), tile)
                 pos_cam, path = trajectories(state, action, ends, space, state_frame, calib)
                 R_ext, cam_pos = np.asarray(calib["R_ext"]), np.asarray(calib["position"])
                 p0 = (pos_cam[0] @ R_ext) + cam_pos  # first EEF position, base frame
