@@ -9,6 +9,8 @@ from __future__ import annotations
 import shutil
 import subprocess
 import tempfile
+import time
+from collections.abc import Callable
 from pathlib import Path
 
 import cv2
@@ -93,3 +95,14 @@ class RtspServer:
 
     def __exit__(self, *exc) -> None:
         self.kill()
+
+
+def grab_until(driver, done: Callable[[dict[str, list]], bool], timeout: float = 10.0) -> dict[str, list]:
+    """Grab as the camera service does until ``done(frames so far)``; fail at the deadline."""
+    got: dict[str, list] = {name: [] for name in driver.cameras}
+    deadline = time.monotonic() + timeout
+    while not done(got):
+        assert time.monotonic() < deadline, f"gave up after {timeout} s: {driver.stats()}"
+        for name, frame in driver.grab(time.time_ns()).items():
+            got[name].append(frame)
+    return got

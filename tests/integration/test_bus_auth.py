@@ -14,11 +14,11 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 import pytest
+from polling import wait_for
 
 from services.core import topics
 from services.core.bus import Bus, BusConfig, Received, free_tcp_port
@@ -32,17 +32,6 @@ from services.router.credentials import USERS_FILE, password_path, write_credent
 REPO = Path(__file__).resolve().parents[2]
 ACL = REPO / "deploy" / "zenoh" / "router-acl.json5"
 REFUSE_S = 1.0  # how long a refused client keeps retrying before its open fails
-
-
-def wait_for(cond: Callable[[], object], timeout: float = 10.0, what: str = "condition"):
-    deadline = time.monotonic() + timeout
-    while True:
-        value = cond()
-        if value:
-            return value
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout:.0f}s waiting for {what}")
-        time.sleep(0.01)
 
 
 class SecureRouter:

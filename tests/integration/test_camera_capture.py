@@ -7,10 +7,9 @@ from __future__ import annotations
 import os
 import signal
 import time
-from collections.abc import Callable
 
 import pytest
-from camera_media import RtspServer, code_of, require_rtsp_server, write_video
+from camera_media import RtspServer, code_of, grab_until, require_rtsp_server, write_video
 from pydantic import ValidationError
 
 from services.camera.base import Frame
@@ -26,19 +25,6 @@ RIG = load_rig("three15")
 def build(cameras: dict, width: int = 160, height: int = 120, **settings) -> OpenCVCamera:
     cfg = OpenCVCameraConfig(cameras=cameras, **settings)
     return CAMERA_DRIVERS.build(cfg, rig=RIG, width=width, height=height)
-
-
-def grab_until(
-    driver: OpenCVCamera, done: Callable[[dict[str, list[Frame]]], bool], timeout: float = 10.0
-) -> dict[str, list[Frame]]:
-    """Grab as the camera service does until ``done(frames so far)``; fail at the deadline."""
-    got: dict[str, list[Frame]] = {name: [] for name in driver.cameras}
-    deadline = time.monotonic() + timeout
-    while not done(got):
-        assert time.monotonic() < deadline, f"gave up after {timeout} s: {driver.stats()}"
-        for name, frame in driver.grab(time.time_ns()).items():
-            got[name].append(frame)
-    return got
 
 
 def codes(frames: list[Frame]) -> list[int]:

@@ -16,6 +16,7 @@ from enum import Enum
 
 import numpy as np
 import pytest
+from camera_media import grab_until
 
 from services.camera.config import CAMERA_DRIVERS, CameraConfig, RealSenseCameraConfig
 from services.core.config import ConfigError
@@ -173,16 +174,6 @@ def build(cameras: dict, **settings):
     )
     assert isinstance(cfg.driver, RealSenseCameraConfig)
     return CAMERA_DRIVERS.build(cfg.driver, rig=RIG, width=cfg.width, height=cfg.height)
-
-
-def grab_until(driver, done, timeout: float = 10.0) -> dict[str, list]:
-    got: dict[str, list] = {name: [] for name in driver.cameras}
-    deadline = time.monotonic() + timeout
-    while not done(got):
-        assert time.monotonic() < deadline, f"gave up after {timeout} s: {driver.stats()}"
-        for name, frame in driver.grab(time.time_ns()).items():
-            got[name].append(frame)
-    return got
 
 
 def test_frames_come_from_the_device_of_each_serial_stamped_by_its_hardware_clock(devices):

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
 from contextlib import ExitStack
 
 import numpy as np
@@ -11,6 +10,7 @@ import pytest
 from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
+from polling import wait_for
 
 from services.core import topics
 from services.core.bus import Bus, BusConfig, free_tcp_port, router
@@ -49,17 +49,6 @@ def chunk_log_times(path) -> list[list[int]]:
             if isinstance(record, Chunk):
                 out.append([r.log_time for r in breakup_chunk(record) if isinstance(r, Message)])
     return out
-
-
-def wait_for(cond: Callable[[], object], timeout: float = 10.0, what: str = "condition"):
-    deadline = time.monotonic() + timeout
-    while True:
-        value = cond()
-        if value:
-            return value
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout:.0f}s waiting for {what}")
-        time.sleep(0.01)
 
 
 class Net:

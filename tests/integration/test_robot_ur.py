@@ -24,6 +24,7 @@ from contextlib import ExitStack
 
 import numpy as np
 import pytest
+from polling import wait_for
 
 from services.core import topics
 from services.core.config import ConfigError
@@ -221,17 +222,6 @@ def fake_ur(monkeypatch):
 
     yield make
     ARMS.clear()
-
-
-def wait_for(cond, timeout: float = 10.0, what: str = "condition"):
-    deadline = time.monotonic() + timeout
-    while True:
-        value = cond()
-        if value:
-            return value
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout:.0f}s waiting for {what}")
-        time.sleep(0.01)
 
 
 # -- a session: robot service (UR behind Safety and ControlLoop), recorder, a teleop -----------------

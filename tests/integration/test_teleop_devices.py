@@ -25,12 +25,12 @@ import sys
 import termios
 import threading
 import time
-from collections.abc import Callable
 from contextlib import ExitStack
 from pathlib import Path
 
 import numpy as np
 import pytest
+from polling import wait_for
 
 from services.core import topics
 from services.core.bus import Bus, BusConfig
@@ -46,15 +46,6 @@ from services.teleop.service import TeleopService
 
 ROOT = Path(__file__).resolve().parents[2]
 MAX_DP, MAX_DROT = 0.02, 0.1  # the defaults: the scripted expert's free-space step and rotation cap
-
-
-def wait_for(cond: Callable[[], object], timeout: float = 10.0, what: str = "condition"):
-    deadline = time.monotonic() + timeout
-    while not (value := cond()):
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout:.0f}s waiting for {what}")
-        time.sleep(0.005)
-    return value
 
 
 class Clock:
