@@ -27,6 +27,16 @@ def _pooled(cells: list[dict[str, Any]]) -> tuple[int, int]:
     return sum(c["successes"] for c in cells), sum(c["episodes"] for c in cells)
 
 
+def stage_wall_s(cells: list[dict[str, Any]]) -> tuple[float, float]:
+    """(training s, evaluation s) the cells' stages took when they ran; a stage shared by cells counts once."""
+    train: dict[str, float] = {}
+    evals: dict[str, float] = {}
+    for c in cells:
+        train[c["stages"]["train"]] = c.get("train_wall_s") or 0.0
+        evals[c["stages"]["eval"]] = c.get("eval_wall_s") or 0.0
+    return sum(train.values()), sum(evals.values())
+
+
 def write_table(results: dict[str, Any], path: Path) -> None:
     ns = sorted({c["N"] for c in results["cells"]})
     seeds = sorted({c["seed"] for c in results["cells"]})
@@ -56,10 +66,12 @@ def write_table(results: dict[str, Any], path: Path) -> None:
             lo, hi = wilson(k, m)
             row.append(f"{k / m:.2f} ({k}/{m}, {lo:.2f}-{hi:.2f})")
         lines.append(f"| {label} | {space} | {ev} | " + " | ".join(row) + " |")
+    train_h, eval_h = (v / 3600 for v in stage_wall_s(results["cells"]))
     lines += [
         "",
-        f"Wall time {results['wall_s'] / 3600:.1f} h; versions: "
-        + ", ".join(f"{k} {v}" for k, v in results["versions"].items()),
+        f"Wall time: training {train_h:.2f} h and evaluation {eval_h:.2f} h for these cells (each stage as "
+        f"long as it took when it ran, a shared one once), this run {results['wall_s'] / 3600:.2f} h "
+        "(cached stages are not run again); versions: " + ", ".join(f"{k} {v}" for k, v in results["versions"].items()),
     ]
     path.write_text("\n".join(lines) + "\n")
 
