@@ -173,22 +173,27 @@ class Runner:
             raise ConfigError(f"{self.name}: the grid has no cells")
 
     # -- stages ---------------------------------------------------------------------------------
-    def demos(self) -> Stage:
-        n_max = max(c["N"] for c in self.cells)
+    def demos_stage(self, n: int) -> Stage:
+        """The stage of the first ``n`` expert demos. Keyed by ``n``, never by which cells a run
+        selected: a cell of ``--only N=10`` and the same cell of the whole grid share every stage."""
         rig = self.q.get("demos", {}).get("rig", "five15")
-        st = Stage("demos", {"task": self.task, "rig": rig, "N": n_max, "size": self.scale["size"]}, self.cache)
+        return Stage("demos", {"task": self.task, "rig": rig, "N": n, "size": self.scale["size"]}, self.cache)
+
+    def demos(self, n: int) -> Stage:
+        st = self.demos_stage(n)
+        rig = st.key["rig"]
         if st.done:
             return st
         shutil.rmtree(st.dir, ignore_errors=True)  # an interrupted collection starts over
         st.dir.mkdir(parents=True)
-        self.progress(f"collecting {n_max} {self.task} demos with {rig} -> {st.dir}")
+        self.progress(f"collecting {n} {self.task} demos with {rig} -> {st.dir}")
         viewscale(
             [
                 "collect",
                 "--task",
                 self.task,
                 "--episodes",
-                str(n_max),
+                str(n),
                 "--rig",
                 rig,
                 "--size",
@@ -202,9 +207,9 @@ class Runner:
         st.finish(episodes=len(list((st.dir / "raw").glob("*.mcap"))))
         return st
 
-    def source(self, rig: str) -> tuple[Stage, Path]:
-        """The demos as seen by ``rig``: the collection itself, or a re-rendering of it."""
-        demos = self.demos()
+    def source(self, rig: str, n: int) -> tuple[Stage, Path]:
+        """The first ``n`` demos as seen by ``rig``: the collection itself, or a re-rendering of it."""
+        demos = self.demos(n)
         if rig == demos.key["rig"]:
             return demos, demos.dir / "raw"
         st = Stage("rerender", {"demos": demos.hash, "rig": rig}, self.cache)
@@ -220,7 +225,7 @@ class Runner:
         return st, st.dir / "raw"
 
     def dataset(self, cell: dict[str, Any]) -> Stage:
-        src, raw = self.source(cell["train"]["rig"])
+        src, raw = self.source(cell["train"]["rig"], cell["N"])
         views = list(cell["train"]["views"])
         key = {"source": src.hash, "N": cell["N"], "views": views, "space": cell["space"], "size": self.scale["size"]}
         st = Stage("dataset", key, self.cache)
