@@ -8,8 +8,12 @@ scales.yaml``) set the preset, training steps, seeds, frame size and evaluation 
 Every stage is cached under ``runs/experiments/cache/<stage>-<hash>/``, the hash taken over its
 config and the hashes of its inputs; a stage's ``stage.json`` is written last, when it is
 complete. A second run skips complete stages; after an interruption a stage starts again (a
-training resumes from its last checkpoint, as ``viewscale train`` does). One set of expert
-demonstrations serves every cell of a task: N demos are the first N episodes, other rigs are
+training resumes from its last checkpoint, as ``viewscale train`` does). A stage is made under a
+lock, so runs over one cache can go in parallel (``--only train=F`` and ``--only train=five15``
+on a machine with the cores): one that needs a stage another is making waits for it.
+
+The N demos of a cell are the task's first N expert episodes (seeds 0 .. N-1; a collection per N,
+so a cell's stages do not depend on which other cells a run selected); other rigs see
 re-renderings of the same demos (``viewscale rerender``). Results go to
 ``runs/experiments/<question>-<task>-<scale>/``: ``results.json`` (every cell, seeds, versions),
 ``table.md`` and ``success_vs_n.png`` (success rate against N per training source, Wilson 95%
@@ -18,6 +22,7 @@ intervals).
 
 from __future__ import annotations
 
+import fcntl
 import hashlib
 import importlib.metadata as md
 import itertools
@@ -26,7 +31,8 @@ import shutil
 import subprocess
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -76,6 +82,21 @@ class Stage:
 
     def facts(self) -> dict[str, Any]:
         return json.loads((self.dir / "stage.json").read_text())
+
+    @contextmanager
+    def claimed(self, progress: Callable[[str], None]) -> Iterator[Stage]:
+        """Hold this stage's lock while making it: a second run over the same cache (another
+        ``--only`` selection in parallel, or the same command twice) waits for it instead of
+        making it too and clobbering the first one's files. The OS drops the lock of a run that
+        dies, killed or not."""
+        self.root.mkdir(parents=True, exist_ok=True)
+        with open(self.root / f"{self.kind}-{self.hash}.lock", "w") as fh:
+            try:
+                fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                progress(f"waiting for another run making {self.dir}")
+                fcntl.flock(fh, fcntl.LOCK_EX)
+            yield self
 
 
 def viewscale(args: list[str], log: Path) -> None:
@@ -184,28 +205,31 @@ class Runner:
         rig = st.key["rig"]
         if st.done:
             return st
-        shutil.rmtree(st.dir, ignore_errors=True)  # an interrupted collection starts over
-        st.dir.mkdir(parents=True)
-        self.progress(f"collecting {n} {self.task} demos with {rig} -> {st.dir}")
-        viewscale(
-            [
-                "collect",
-                "--task",
-                self.task,
-                "--episodes",
-                str(n),
-                "--rig",
-                rig,
-                "--size",
-                str(self.scale["size"]),
-                "--fast",
-                "--out",
-                str(st.dir / "raw"),
-            ],
-            st.dir / "log.txt",
-        )
-        st.finish(episodes=len(list((st.dir / "raw").glob("*.mcap"))))
-        return st
+        with st.claimed(self.progress):
+            if st.done:  # another run finished it while this one waited
+                return st
+            shutil.rmtree(st.dir, ignore_errors=True)  # an interrupted collection starts over
+            st.dir.mkdir(parents=True)
+            self.progress(f"collecting {n} {self.task} demos with {rig} -> {st.dir}")
+            viewscale(
+                [
+                    "collect",
+                    "--task",
+                    self.task,
+                    "--episodes",
+                    str(n),
+                    "--rig",
+                    rig,
+                    "--size",
+                    str(self.scale["size"]),
+                    "--fast",
+                    "--out",
+                    str(st.dir / "raw"),
+                ],
+                st.dir / "log.txt",
+            )
+            st.finish(episodes=len(list((st.dir / "raw").glob("*.mcap"))))
+            return st
 
     def source(self, rig: str, n: int) -> tuple[Stage, Path]:
         """The first ``n`` demos as seen by ``rig``: the collection itself, or a re-rendering of it."""
@@ -214,14 +238,16 @@ class Runner:
             return demos, demos.dir / "raw"
         st = Stage("rerender", {"demos": demos.hash, "rig": rig}, self.cache)
         if not st.done:
-            shutil.rmtree(st.dir, ignore_errors=True)
-            st.dir.mkdir(parents=True)
-            self.progress(f"re-rendering the demos through {rig} -> {st.dir}")
-            viewscale(
-                ["rerender", "--raw", str(demos.dir / "raw"), "--rig", rig, "--out", str(st.dir / "raw")],
-                st.dir / "log.txt",
-            )
-            st.finish()
+            with st.claimed(self.progress):
+                if not st.done:
+                    shutil.rmtree(st.dir, ignore_errors=True)
+                    st.dir.mkdir(parents=True)
+                    self.progress(f"re-rendering the demos through {rig} -> {st.dir}")
+                    viewscale(
+                        ["rerender", "--raw", str(demos.dir / "raw"), "--rig", rig, "--out", str(st.dir / "raw")],
+                        st.dir / "log.txt",
+                    )
+                    st.finish()
         return st, st.dir / "raw"
 
     def dataset(self, cell: dict[str, Any]) -> Stage:
@@ -231,31 +257,34 @@ class Runner:
         st = Stage("dataset", key, self.cache)
         if st.done:
             return st
-        files = sorted(raw.glob("*.mcap"))[: cell["N"]]
-        if len(files) < cell["N"]:
-            raise ExperimentError(f"{len(files)} demos where the cell needs {cell['N']}")
-        st.dir.mkdir(parents=True, exist_ok=True)
-        self.progress(f"building {cell['N']} x {len(views)} {cell['space']}-space pseudo-demos -> {st.dir}")
-        size = self.scale["size"]
-        viewscale(
-            [
-                "dataset",
-                "build",
-                "--raw",
-                *map(str, files),
-                "--views",
-                ",".join(views),
-                "--space",
-                cell["space"],
-                "--image-size",
-                f"{size}x{size}",
-                "--out",
-                str(st.dir / "ds"),
-            ],
-            st.dir / "log.txt",
-        )
-        st.finish()
-        return st
+        with st.claimed(self.progress):
+            if st.done:  # another run finished it while this one waited
+                return st
+            files = sorted(raw.glob("*.mcap"))[: cell["N"]]
+            if len(files) < cell["N"]:
+                raise ExperimentError(f"{len(files)} demos where the cell needs {cell['N']}")
+            st.dir.mkdir(parents=True, exist_ok=True)
+            self.progress(f"building {cell['N']} x {len(views)} {cell['space']}-space pseudo-demos -> {st.dir}")
+            size = self.scale["size"]
+            viewscale(
+                [
+                    "dataset",
+                    "build",
+                    "--raw",
+                    *map(str, files),
+                    "--views",
+                    ",".join(views),
+                    "--space",
+                    cell["space"],
+                    "--image-size",
+                    f"{size}x{size}",
+                    "--out",
+                    str(st.dir / "ds"),
+                ],
+                st.dir / "log.txt",
+            )
+            st.finish()
+            return st
 
     def training(self, cell: dict[str, Any]) -> Stage:
         ds = self.dataset(cell)
@@ -270,28 +299,31 @@ class Runner:
         st = Stage("train", key, self.cache)
         if st.done:
             return st
-        st.dir.mkdir(parents=True, exist_ok=True)  # kept: an interrupted training resumes from its checkpoint
-        self.progress(f"training {s['preset']} for {s['steps']} steps (seed {cell['seed']}) -> {st.dir}")
-        t0 = time.monotonic()
-        args = [
-            "train",
-            "--data",
-            str(ds.dir / "ds"),
-            "--preset",
-            s["preset"],
-            "--steps",
-            str(s["steps"]),
-            "--seed",
-            str(cell["seed"]),
-            "--out",
-            str(st.dir / "run"),
-            "--no-progress",
-        ]
-        for item in s.get("train_set", []):
-            args += ["--set", item]
-        viewscale(args, st.dir / "log.txt")
-        st.finish(wall_s=round(time.monotonic() - t0, 1))
-        return st
+        with st.claimed(self.progress):
+            if st.done:  # another run finished it while this one waited
+                return st
+            st.dir.mkdir(parents=True, exist_ok=True)  # kept: an interrupted training resumes from its checkpoint
+            self.progress(f"training {s['preset']} for {s['steps']} steps (seed {cell['seed']}) -> {st.dir}")
+            t0 = time.monotonic()
+            args = [
+                "train",
+                "--data",
+                str(ds.dir / "ds"),
+                "--preset",
+                s["preset"],
+                "--steps",
+                str(s["steps"]),
+                "--seed",
+                str(cell["seed"]),
+                "--out",
+                str(st.dir / "run"),
+                "--no-progress",
+            ]
+            for item in s.get("train_set", []):
+                args += ["--set", item]
+            viewscale(args, st.dir / "log.txt")
+            st.finish(wall_s=round(time.monotonic() - t0, 1))
+            return st
 
     def evaluation(self, cell: dict[str, Any]) -> Stage:
         tr = self.training(cell)
@@ -306,31 +338,34 @@ class Runner:
         st = Stage("eval", key, self.cache)
         if st.done:
             return st
-        shutil.rmtree(st.dir, ignore_errors=True)  # an interrupted evaluation runs again from its first episode
-        st.dir.mkdir(parents=True)
-        self.progress(f"evaluating from {','.join(views)}: {self.scale['episodes']} episodes -> {st.dir}")
-        t0 = time.monotonic()
-        rig = self.q.get("demos", {}).get("rig", "five15")  # the scene the robot acts in: the demos' rig
-        viewscale(
-            [
-                "eval",
-                "--checkpoint",
-                str(tr.dir / "run"),
-                "--task",
-                self.task,
-                "--episodes",
-                str(self.scale["episodes"]),
-                "--views",
-                ",".join(views),
-                "--rig",
-                eval_rig(cell, rig),
-                "--out",
-                str(st.dir / "eval"),
-            ],
-            st.dir / "log.txt",
-        )
-        st.finish(wall_s=round(time.monotonic() - t0, 1))
-        return st
+        with st.claimed(self.progress):
+            if st.done:  # another run finished it while this one waited
+                return st
+            shutil.rmtree(st.dir, ignore_errors=True)  # an interrupted evaluation runs again from its first episode
+            st.dir.mkdir(parents=True)
+            self.progress(f"evaluating from {','.join(views)}: {self.scale['episodes']} episodes -> {st.dir}")
+            t0 = time.monotonic()
+            rig = self.q.get("demos", {}).get("rig", "five15")  # the scene the robot acts in: the demos' rig
+            viewscale(
+                [
+                    "eval",
+                    "--checkpoint",
+                    str(tr.dir / "run"),
+                    "--task",
+                    self.task,
+                    "--episodes",
+                    str(self.scale["episodes"]),
+                    "--views",
+                    ",".join(views),
+                    "--rig",
+                    eval_rig(cell, rig),
+                    "--out",
+                    str(st.dir / "eval"),
+                ],
+                st.dir / "log.txt",
+            )
+            st.finish(wall_s=round(time.monotonic() - t0, 1))
+            return st
 
     # -- the whole question -----------------------------------------------------------------------
     def run(self) -> dict[str, Any]:

@@ -21,3 +21,38 @@ def test_demos_finished_by_a_subset_run_serve_the_whole_grid(tmp_path):
     assert grid.demos_stage(25).hash != done.hash and grid.demos_stage(50).hash != done.hash
     two = Runner("q1", "lift", "tiny", tmp_path, only=["N=10", "N=25"])
     assert two.demos_stage(10).hash == done.hash
+
+
+def test_a_run_waits_for_a_stage_another_run_is_making(tmp_path):
+    import threading
+    import time
+
+    first = Runner("q1", "lift", "tiny", tmp_path, only=["N=10"])
+    said: list[str] = []
+    second = Runner("q1", "lift", "tiny", tmp_path, progress=said.append, only=["N=10"])
+    st = first.demos_stage(10)
+    holding, release = threading.Event(), threading.Event()
+
+    def make() -> None:  # the first run, in the middle of making the stage
+        with st.claimed(lambda _: None):
+            st.dir.mkdir(parents=True)
+            holding.set()
+            release.wait(10)
+            (st.dir / "raw").mkdir()
+            st.finish(episodes=10)
+
+    t = threading.Thread(target=make)
+    t.start()
+    assert holding.wait(10)
+    got: list = []
+    waiter = threading.Thread(target=lambda: got.append(second.demos(10)))
+    waiter.start()
+    deadline = time.monotonic() + 10
+    while not said and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert said and said[0].startswith("waiting for another run making") and not got  # blocked, not collecting
+    release.set()
+    t.join(10)
+    waiter.join(10)
+    assert got and got[0].hash == st.hash and got[0].done
+    assert len(said) == 1  # it found the stage finished: no collection of its own
