@@ -37,6 +37,32 @@ from services.session.config import SessionConfig
 log = logging.getLogger(__name__)
 
 
+class SuccessWatch:
+    """An episode's success as the session judges it, from the task state of every tick.
+
+    Success is the task's condition holding for ``settle_ticks`` consecutive ticks (so demos end
+    at rest); once reached it stays reached, as in robomimic's rollouts, which stop at the first
+    success. A lift whose cube slips a tick after that is a success, not a failure judged by the
+    state at the moment the pause lands.
+    """
+
+    def __init__(self, settle_ticks: int):
+        self.settle_ticks = settle_ticks
+        self.tick = -1  # the last tick seen
+        self.since: int | None = None  # first tick of the current run of successful ticks
+        self.held = False
+
+    def update(self, tick: int, success: bool) -> None:
+        self.tick = tick
+        if not success:
+            self.since = None
+            return
+        if self.since is None:
+            self.since = tick
+        if tick - self.since >= self.settle_ticks:
+            self.held = True
+
+
 class SessionError(RuntimeError):
     pass
 
@@ -95,8 +121,7 @@ class Session:
         self.rig = rig_name(cfg.rig)  # recorded with each episode and part of its id (a path would not do)
         self._cv = threading.Condition()
         self._episode = ""
-        self._tick = -1
-        self._success_since: int | None = None
+        self._success = SuccessWatch(cfg.settle_ticks)
         self._lost: set[str] = set()
         bus.subscribe(topics.TASK_STATE, self._on_task)
         bus.watch_alive(self._on_alive)
@@ -106,12 +131,7 @@ class Session:
         with self._cv:
             if msg.episode_id != self._episode:
                 return
-            self._tick = msg.tick
-            if msg.success:
-                if self._success_since is None:
-                    self._success_since = msg.tick
-            else:
-                self._success_since = None
+            self._success.update(msg.tick, msg.success)
             self._cv.notify_all()
 
     def _on_alive(self, service: str, alive: bool) -> None:
@@ -139,7 +159,7 @@ class Session:
     def _watch(self, episode_id: str) -> None:
         """Follow the task state of ``episode_id`` from its first tick."""
         with self._cv:
-            self._episode, self._tick, self._success_since = episode_id, -1, None
+            self._episode, self._success = episode_id, SuccessWatch(self.cfg.settle_ticks)
 
     def _wait_done(self, limit: int) -> None:
         """Until success held for settle_ticks, the tick limit, or a lost service."""
@@ -150,13 +170,12 @@ class Session:
             while True:
                 if self._lost:
                     raise SessionError(f"service(s) lost mid-episode: {', '.join(sorted(self._lost))}")
-                if self._success_since is not None and self._tick - self._success_since >= self.cfg.settle_ticks:
-                    return
-                if self._tick + 1 >= limit:
+                if self._success.held or self._success.tick + 1 >= limit:
                     return
                 remaining = deadline - time.monotonic()
                 if remaining <= 0:
-                    raise SessionError(f"episode made no progress: tick {self._tick} of {limit} after {budget:.0f}s")
+                    tick = self._success.tick
+                    raise SessionError(f"episode made no progress: tick {tick} of {limit} after {budget:.0f}s")
                 self._cv.wait(min(remaining, 0.5))
 
     def run_episode(self, seed: int) -> Attempt:
@@ -196,10 +215,13 @@ class Session:
                 log.warning("could not close interrupted episode %s: %s", episode_id, stop_exc)
             raise
         seconds = time.monotonic() - t0
-        attempt = Attempt(seed, episode_id, paused.success, int(paused.ticks), seconds)
-        if paused.success or self.cfg.evaluation:
+        # The success that ended the episode counts, even if the object slips in the tick or two
+        # before the pause lands; at the tick limit, the state at the pause decides.
+        success = self._success.held or bool(paused.success)
+        attempt = Attempt(seed, episode_id, success, int(paused.ticks), seconds)
+        if success or self.cfg.evaluation:
             reply = self._recorder(
-                EpisodeCommand.EPISODE_COMMAND_STOP, episode_id=episode_id, success=paused.success, ticks=paused.ticks
+                EpisodeCommand.EPISODE_COMMAND_STOP, episode_id=episode_id, success=success, ticks=paused.ticks
             )
             attempt.meta = reply.meta
         else:
