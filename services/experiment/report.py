@@ -27,6 +27,15 @@ def _pooled(cells: list[dict[str, Any]]) -> tuple[int, int]:
     return sum(c["successes"] for c in cells), sum(c["episodes"] for c in cells)
 
 
+def describe_only(only: list[str]) -> str:
+    """``["N=10", "train=F", "train=five15"]`` -> ``N=10 and train=F or five15`` (values of one axis: either)."""
+    axes: dict[str, list[str]] = {}
+    for item in only:
+        axis, _, value = item.partition("=")
+        axes.setdefault(axis, []).append(value)
+    return " and ".join(f"{axis}={' or '.join(values)}" for axis, values in axes.items())
+
+
 def stage_wall_s(cells: list[dict[str, Any]]) -> tuple[float, float]:
     """(training s, evaluation s) the cells' stages took when they ran; a stage shared by cells counts once."""
     train: dict[str, float] = {}
@@ -48,7 +57,7 @@ def write_table(results: dict[str, Any], path: Path) -> None:
         f"{', '.join(map(str, seeds))}, {results['scale_settings']['episodes']} evaluation episodes per seed, "
         "the same evaluation seeds for every cell). Success k/n pooled over training seeds, Wilson 95%.",
         *(
-            [f"Only the cells with {' and '.join(results['only'])} (`--only`): part of the question's grid."]
+            [f"Only the cells with {describe_only(results['only'])} (`--only`): part of the question's grid."]
             if results.get("only")
             else []
         ),

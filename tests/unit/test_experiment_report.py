@@ -29,7 +29,7 @@ def results(cells):
         "task": "lift",
         "scale": "tiny",
         "scale_settings": {"preset": "tiny", "steps": 6000, "episodes": 50},
-        "only": ["space=camera"],
+        "only": ["space=camera", "train=F", "train=five15"],
         "versions": {"torch": "2.x"},
         "cells": cells,
         "wall_s": 36.0,
@@ -51,7 +51,7 @@ def test_the_table_pools_seeds_per_n_and_says_what_the_stages_took(tmp_path):
     assert "0.58 (58/100, 0.48-0.67)" in rows["F"] and rows["F"].rstrip().endswith("| - |")
     assert "0.90 (45/50, 0.79-0.96)" in rows["five15"] and "0.98 (49/50, 0.90-1.00)" in rows["five15"]
     assert "| training views | space | eval views | N=10 | N=25 |" in text
-    assert "Only the cells with space=camera" in text
+    assert "Only the cells with space=camera and train=F or five15 (`--only`)" in text
     # 5600 s of training and 420 s of evaluation, against this run's 36 s
     assert "training 1.56 h and evaluation 0.12 h" in text and "this run 0.01 h" in text
 
