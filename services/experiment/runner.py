@@ -88,10 +88,10 @@ class Stage:
 
     @contextmanager
     def claimed(self, progress: Callable[[str], None]) -> Iterator[Stage]:
-        """Hold this stage's lock while making it: a second run over the same cache (another
-        ``--only`` selection in parallel, or the same command twice) waits for it instead of
-        making it too and clobbering the first one's files. The OS drops the lock of a run that
-        dies, killed or not."""
+        """Hold this stage's lock while checking and making it: a second run over the same cache
+        (another ``--only`` selection in parallel, or the same command twice) waits for it instead
+        of making it too and clobbering the first one's files. The OS drops the lock of a run that
+        dies, killed or not. A finished stage is nobody's to hold: taking its lock never waits."""
         self.root.mkdir(parents=True, exist_ok=True)
         with open(self.root / f"{self.kind}-{self.hash}.lock", "w") as fh:
             try:
@@ -206,10 +206,8 @@ class Runner:
     def demos(self, n: int) -> Stage:
         st = self.demos_stage(n)
         rig = st.key["rig"]
-        if st.done:
-            return st
         with st.claimed(self.progress):
-            if st.done:  # another run finished it while this one waited
+            if st.done:  # made before, or by another run while this one waited
                 return st
             shutil.rmtree(st.dir, ignore_errors=True)  # an interrupted collection starts over
             st.dir.mkdir(parents=True)
@@ -240,17 +238,16 @@ class Runner:
         if rig == demos.key["rig"]:
             return demos, demos.dir / "raw"
         st = Stage("rerender", {"demos": demos.hash, "rig": rig}, self.cache)
-        if not st.done:
-            with st.claimed(self.progress):
-                if not st.done:
-                    shutil.rmtree(st.dir, ignore_errors=True)
-                    st.dir.mkdir(parents=True)
-                    self.progress(f"re-rendering the demos through {rig} -> {st.dir}")
-                    viewscale(
-                        ["rerender", "--raw", str(demos.dir / "raw"), "--rig", rig, "--out", str(st.dir / "raw")],
-                        st.dir / "log.txt",
-                    )
-                    st.finish()
+        with st.claimed(self.progress):
+            if not st.done:
+                shutil.rmtree(st.dir, ignore_errors=True)
+                st.dir.mkdir(parents=True)
+                self.progress(f"re-rendering the demos through {rig} -> {st.dir}")
+                viewscale(
+                    ["rerender", "--raw", str(demos.dir / "raw"), "--rig", rig, "--out", str(st.dir / "raw")],
+                    st.dir / "log.txt",
+                )
+                st.finish()
         return st, st.dir / "raw"
 
     def dataset(self, cell: dict[str, Any]) -> Stage:
@@ -258,10 +255,8 @@ class Runner:
         views = list(cell["train"]["views"])
         key = {"source": src.hash, "N": cell["N"], "views": views, "space": cell["space"], "size": self.scale["size"]}
         st = Stage("dataset", key, self.cache)
-        if st.done:
-            return st
         with st.claimed(self.progress):
-            if st.done:  # another run finished it while this one waited
+            if st.done:  # made before, or by another run while this one waited
                 return st
             files = sorted(raw.glob("*.mcap"))[: cell["N"]]
             if len(files) < cell["N"]:
@@ -300,10 +295,8 @@ class Runner:
             "set": list(s.get("train_set", [])),
         }
         st = Stage("train", key, self.cache)
-        if st.done:
-            return st
         with st.claimed(self.progress):
-            if st.done:  # another run finished it while this one waited
+            if st.done:  # made before, or by another run while this one waited
                 return st
             st.dir.mkdir(parents=True, exist_ok=True)  # kept: an interrupted training resumes from its checkpoint
             self.progress(f"training {s['preset']} for {s['steps']} steps (seed {cell['seed']}) -> {st.dir}")
@@ -340,10 +333,8 @@ class Runner:
             "success_rule": SUCCESS_RULE,
         }
         st = Stage("eval", key, self.cache)
-        if st.done:
-            return st
         with st.claimed(self.progress):
-            if st.done:  # another run finished it while this one waited
+            if st.done:  # made before, or by another run while this one waited
                 return st
             shutil.rmtree(st.dir, ignore_errors=True)  # an interrupted evaluation runs again from its first episode
             st.dir.mkdir(parents=True)
