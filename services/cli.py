@@ -176,7 +176,7 @@ def _experiment(args: argparse.Namespace) -> int:
         runner = Runner(args.question, args.task, args.scale, Path(args.root), progress=say, only=args.only)
         for sig in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):
             signal.signal(sig, _interrupt)
-        runner.run()
+        runner.run(table_only=args.table_only)
     except (ConfigError, ExperimentError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
@@ -371,6 +371,12 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="AXIS=VALUE",
         help="run only the cells with this value: train=F, space=camera, N=10, eval_views=F,FL, seed=0 "
         "(repeatable; two values of one axis: either)",
+    )
+    p.add_argument(
+        "--table-only",
+        action="store_true",
+        help="make no stage: write the table and plot from the selected cells already evaluated in the "
+        "cache, and list the cells not evaluated yet",
     )
     p.set_defaults(func=_experiment)
 

@@ -75,6 +75,10 @@ def write_table(results: dict[str, Any], path: Path) -> None:
             lo, hi = wilson(k, m)
             row.append(f"{k / m:.2f} ({k}/{m}, {lo:.2f}-{hi:.2f})")
         lines.append(f"| {label} | {space} | {ev} | " + " | ".join(row) + " |")
+    missing = results.get("missing") or []
+    if missing:
+        lines += ["", f"Not evaluated yet ({len(missing)} cells of the selection, left out of the table):"]
+        lines += [f"- {m}" for m in missing]
     train_h, eval_h = (v / 3600 for v in stage_wall_s(results["cells"]))
     lines += [
         "",

@@ -8,9 +8,11 @@ scales.yaml``) set the preset, training steps, seeds, frame size and evaluation 
 Every stage is cached under ``runs/experiments/cache/<stage>-<hash>/``, the hash taken over its
 config and the hashes of its inputs; a stage's ``stage.json`` is written last, when it is
 complete. A second run skips complete stages; after an interruption a stage starts again (a
-training resumes from its last checkpoint, as ``viewscale train`` does). A stage is made under a
-lock, so runs over one cache can go in parallel (``--only train=F`` and ``--only train=five15``
-on a machine with the cores): one that needs a stage another is making waits for it.
+training resumes from its last checkpoint, as ``viewscale train`` does). ``--table-only`` makes no
+stage: it tabulates what the cache holds (a grid half done, runs still going) and lists the rest.
+A stage is made under a lock, so runs over one cache can go in parallel (``--only train=F`` and
+``--only train=five15`` on a machine with the cores): one that needs a stage another is making
+waits for it.
 
 The N demos of a cell are the task's first N expert episodes (seeds 0 .. N-1; a collection per N,
 so a cell's stages do not depend on which other cells a run selected); other rigs see
@@ -203,6 +205,41 @@ class Runner:
         rig = self.q.get("demos", {}).get("rig", "five15")
         return Stage("demos", {"task": self.task, "rig": rig, "N": n, "size": self.scale["size"]}, self.cache)
 
+    def source_stage(self, rig: str, n: int) -> Stage:
+        """The stage of the first ``n`` demos as seen by ``rig``: the collection, or its re-rendering."""
+        demos = self.demos_stage(n)
+        if rig == demos.key["rig"]:
+            return demos
+        return Stage("rerender", {"demos": demos.hash, "rig": rig}, self.cache)
+
+    def dataset_stage(self, cell: dict[str, Any]) -> Stage:
+        src = self.source_stage(cell["train"]["rig"], cell["N"])
+        views = list(cell["train"]["views"])
+        key = {"source": src.hash, "N": cell["N"], "views": views, "space": cell["space"], "size": self.scale["size"]}
+        return Stage("dataset", key, self.cache)
+
+    def training_stage(self, cell: dict[str, Any]) -> Stage:
+        s = self.scale
+        key = {
+            "dataset": self.dataset_stage(cell).hash,
+            "preset": s["preset"],
+            "steps": s["steps"],
+            "seed": cell["seed"],
+            "set": list(s.get("train_set", [])),
+        }
+        return Stage("train", key, self.cache)
+
+    def evaluation_stage(self, cell: dict[str, Any]) -> Stage:
+        key = {
+            "train": self.training_stage(cell).hash,
+            "task": self.task,
+            "views": list(cell["eval_views"]),
+            "episodes": self.scale["episodes"],
+            "rig": cell["train"]["rig"],
+            "success_rule": SUCCESS_RULE,
+        }
+        return Stage("eval", key, self.cache)
+
     def demos(self, n: int) -> Stage:
         st = self.demos_stage(n)
         rig = st.key["rig"]
@@ -237,7 +274,7 @@ class Runner:
         demos = self.demos(n)
         if rig == demos.key["rig"]:
             return demos, demos.dir / "raw"
-        st = Stage("rerender", {"demos": demos.hash, "rig": rig}, self.cache)
+        st = self.source_stage(rig, n)
         with st.claimed(self.progress):
             if not st.done:
                 shutil.rmtree(st.dir, ignore_errors=True)
@@ -251,10 +288,9 @@ class Runner:
         return st, st.dir / "raw"
 
     def dataset(self, cell: dict[str, Any]) -> Stage:
-        src, raw = self.source(cell["train"]["rig"], cell["N"])
+        _, raw = self.source(cell["train"]["rig"], cell["N"])
         views = list(cell["train"]["views"])
-        key = {"source": src.hash, "N": cell["N"], "views": views, "space": cell["space"], "size": self.scale["size"]}
-        st = Stage("dataset", key, self.cache)
+        st = self.dataset_stage(cell)
         with st.claimed(self.progress):
             if st.done:  # made before, or by another run while this one waited
                 return st
@@ -287,14 +323,7 @@ class Runner:
     def training(self, cell: dict[str, Any]) -> Stage:
         ds = self.dataset(cell)
         s = self.scale
-        key = {
-            "dataset": ds.hash,
-            "preset": s["preset"],
-            "steps": s["steps"],
-            "seed": cell["seed"],
-            "set": list(s.get("train_set", [])),
-        }
-        st = Stage("train", key, self.cache)
+        st = self.training_stage(cell)
         with st.claimed(self.progress):
             if st.done:  # made before, or by another run while this one waited
                 return st
@@ -324,15 +353,7 @@ class Runner:
     def evaluation(self, cell: dict[str, Any]) -> Stage:
         tr = self.training(cell)
         views = list(cell["eval_views"])
-        key = {
-            "train": tr.hash,
-            "task": self.task,
-            "views": views,
-            "episodes": self.scale["episodes"],
-            "rig": cell["train"]["rig"],
-            "success_rule": SUCCESS_RULE,
-        }
-        st = Stage("eval", key, self.cache)
+        st = self.evaluation_stage(cell)
         with st.claimed(self.progress):
             if st.done:  # made before, or by another run while this one waited
                 return st
@@ -363,15 +384,25 @@ class Runner:
             return st
 
     # -- the whole question -----------------------------------------------------------------------
-    def run(self) -> dict[str, Any]:
+    def run(self, table_only: bool = False) -> dict[str, Any]:
+        """Every selected cell, each stage made unless cached; then results.json, the table and the plot.
+
+        ``table_only``: make no stage; tabulate the cells already evaluated in the cache (by this or
+        any other run, finished or still going) and list the others as not evaluated yet."""
         t0 = time.monotonic()
-        self.out.mkdir(parents=True, exist_ok=True)
-        rows = []
+        rows, missing = [], []
         for i, cell in enumerate(self.cells, 1):
-            self.progress(f"[{i}/{len(self.cells)}] {describe(cell)}")
-            ev = self.evaluation(cell)
+            if table_only:
+                ev = self.evaluation_stage(cell)
+                if not ev.done:
+                    missing.append(describe(cell))
+                    continue
+                tr = self.training_stage(cell)
+            else:
+                self.progress(f"[{i}/{len(self.cells)}] {describe(cell)}")
+                ev = self.evaluation(cell)
+                tr = self.training(cell)
             rep = json.loads((ev.dir / "eval" / "report.json").read_text())["summary"]
-            tr = self.training(cell)
             rows.append(
                 {
                     **cell,
@@ -379,12 +410,23 @@ class Runner:
                     "episodes": rep["episodes"],
                     "success_rate": rep["success_rate"],
                     "wilson95": rep["wilson95"],
-                    "train_wall_s": tr.facts().get("wall_s"),
+                    "train_wall_s": tr.facts().get("wall_s") if tr.done else None,
                     "eval_wall_s": ev.facts().get("wall_s"),
                     "stages": {"train": tr.hash, "eval": ev.hash},
                 }
             )
-            self.progress(f"    {rep['successes']}/{rep['episodes']} successful")
+            if not table_only:
+                self.progress(f"    {rep['successes']}/{rep['episodes']} successful")
+        if missing:
+            self.progress(f"not evaluated yet ({len(missing)} of {len(self.cells)} cells, left out of the table):")
+            for m in missing:
+                self.progress(f"    {m}")
+        if not rows:
+            raise ExperimentError(
+                f"none of the {len(self.cells)} selected cells is evaluated yet in {self.cache}: "
+                "run the question without --table-only to make them"
+            )
+        self.out.mkdir(parents=True, exist_ok=True)
         results = {
             "question": self.q.get("question", self.name),
             "title": self.q.get("title", ""),
@@ -394,6 +436,7 @@ class Runner:
             "only": self.only,  # the cells were filtered: the table is part of the question's grid
             "versions": versions(),
             "cells": rows,
+            "missing": missing,  # cells of the selection not evaluated yet (--table-only)
             "wall_s": round(time.monotonic() - t0, 1),
         }
         (self.out / "results.json").write_text(json.dumps(results, indent=2) + "\n")

@@ -44,6 +44,10 @@ def test_a_question_runs_caches_its_stages_and_resumes_after_a_kill(tmp_path):
     assert any("collecting 2 lift demos" in s for s in seen) and any(s.lstrip().startswith("training") for s in seen)
     assert not (root / "q5-lift-smoke" / "results.json").exists()
 
+    nothing = subprocess.run(experiment(root, "--table-only"), cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert nothing.returncode == 2 and "none of the 3 selected cells is evaluated yet" in nothing.stderr
+    assert not (root / "q5-lift-smoke" / "results.json").exists()
+
     resumed = subprocess.run(experiment(root), cwd=ROOT, capture_output=True, text=True, timeout=900)
     assert resumed.returncode == 0, resumed.stdout[-3000:] + resumed.stderr[-3000:]
     out = resumed.stdout
@@ -67,6 +71,19 @@ def test_a_question_runs_caches_its_stages_and_resumes_after_a_kill(tmp_path):
     results = json.loads((root / "q5-lift-smoke" / "results.json").read_text())
     assert results["cells"] == [cells[1]] and results["only"] == ["eval_views=F,FL,FR"]
     assert "Only the cells with eval_views=F,FL,FR" in (root / "q5-lift-smoke" / "table.md").read_text()
+
+    # Q4 shares one cell with Q5 (five15 evaluated from F): --table-only tabulates it, lists the five
+    # others and makes nothing
+    stages = sorted(p.name for p in (root / "cache").iterdir())
+    q4 = experiment(root, "--table-only")
+    q4[q4.index("q5")] = "q4"
+    partial = subprocess.run(q4, cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert partial.returncode == 0, partial.stdout[-3000:] + partial.stderr[-3000:]
+    assert "not evaluated yet (5 of 6 cells" in partial.stdout and "evaluating" not in partial.stdout
+    assert sorted(p.name for p in (root / "cache").iterdir()) == stages
+    q4res = json.loads((root / "q4-lift-smoke" / "results.json").read_text())
+    assert q4res["cells"] == [cells[0]] and len(q4res["missing"]) == 5
+    assert "Not evaluated yet (5 cells" in (root / "q4-lift-smoke" / "table.md").read_text()
 
 
 def test_an_unknown_question_or_scale_is_one_line(tmp_path):
