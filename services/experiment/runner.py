@@ -397,11 +397,10 @@ class Runner:
                 if not ev.done:
                     missing.append(describe(cell))
                     continue
-                tr = self.training_stage(cell)
             else:
                 self.progress(f"[{i}/{len(self.cells)}] {describe(cell)}")
                 ev = self.evaluation(cell)
-                tr = self.training(cell)
+            tr = self.training_stage(cell)  # made before its evaluation: no second walk through the stages
             rep = json.loads((ev.dir / "eval" / "report.json").read_text())["summary"]
             rows.append(
                 {
