@@ -8,32 +8,25 @@ from __future__ import annotations
 
 import json
 import os
-import platform
 from datetime import datetime, timezone
 from pathlib import Path
+
+from services.core.runtime import host_description  # bench scripts put the project root on sys.path
 
 RESULTS = Path(__file__).resolve().parent / "RESULTS.md"
 HEADER = "# Benchmark results\n\nOne row per run, appended by the scripts in bench/ (newest last).\n\n"
 
 
 def machine() -> str:
-    cpu = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    gpu = ""
+    gpu = "no GPU"
     try:
         import torch
 
         if torch.cuda.is_available():
-            gpu = f", GPU {torch.cuda.get_device_name(0)}"
+            gpu = f"GPU {torch.cuda.get_device_name(0)}"
     except ImportError:
         pass
-    return f"{platform.node()} ({cpu}, {os.cpu_count()} cores{gpu or ', no GPU'})"
+    return host_description(gpu)
 
 
 def report(name: str, result: dict) -> dict:

@@ -62,6 +62,7 @@ def main() -> None:
             "settings": {k: v for k, v in res["scale_settings"].items() if k != "train_set"},
             "cells": cells,
             "not_evaluated": res.get("missing") or [],  # cells of the selection missing from a --table-only run
+            "train_hosts": sorted({c.get("train_host") or "not recorded" for c in res["cells"]}),
             "train_h": round(train_s / 3600, 2),
             "eval_h": round(eval_s / 3600, 2),
             "git": res.get("versions", {}).get("git", ""),

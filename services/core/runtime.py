@@ -5,6 +5,7 @@ from __future__ import annotations
 import ctypes
 import logging
 import os
+import platform
 import signal
 import sys
 import threading
@@ -30,6 +31,20 @@ def stop_on_signals(stop: threading.Event) -> None:
     signal.signal(signal.SIGTERM, handler)
     signal.signal(signal.SIGINT, handler)
     signal.signal(signal.SIGHUP, handler)
+
+
+def host_description(gpu: str | None = None) -> str:
+    """``node (CPU model, N cores[, gpu])``: where something ran. The same seed trained on another
+    CPU model gives other weights (its float kernels round differently), so results record it."""
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return f"{platform.node()} ({cpu}, {os.cpu_count()} cores{'' if gpu is None else ', ' + gpu})"
 
 
 def announce_ready(service: str, address: str) -> None:

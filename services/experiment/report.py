@@ -79,6 +79,12 @@ def write_table(results: dict[str, Any], path: Path) -> None:
     if missing:
         lines += ["", f"Not evaluated yet ({len(missing)} cells of the selection, left out of the table):"]
         lines += [f"- {m}" for m in missing]
+    hosts = sorted({c.get("train_host") or "not recorded" for c in results["cells"]})
+    lines += [
+        "",
+        f"Trained on {', '.join(hosts)}. A cell trained again on another CPU model can come out as "
+        "differently as with another training seed (its float kernels round differently).",
+    ]
     train_h, eval_h = (v / 3600 for v in stage_wall_s(results["cells"]))
     lines += [
         "",

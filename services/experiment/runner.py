@@ -41,7 +41,7 @@ from typing import Any
 
 from services.core.config import ConfigError, read_yaml
 from services.core.rig import load_rig
-from services.core.runtime import child_env
+from services.core.runtime import child_env, host_description
 from services.experiment.report import write_plot, write_table
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -347,7 +347,7 @@ class Runner:
             for item in s.get("train_set", []):
                 args += ["--set", item]
             viewscale(args, st.dir / "log.txt")
-            st.finish(wall_s=round(time.monotonic() - t0, 1))
+            st.finish(wall_s=round(time.monotonic() - t0, 1), host=host_description())
             return st
 
     def evaluation(self, cell: dict[str, Any]) -> Stage:
@@ -410,6 +410,7 @@ class Runner:
                     "success_rate": rep["success_rate"],
                     "wilson95": rep["wilson95"],
                     "train_wall_s": tr.facts().get("wall_s") if tr.done else None,
+                    "train_host": tr.facts().get("host") if tr.done else None,  # its weights depend on the CPU
                     "eval_wall_s": ev.facts().get("wall_s"),
                     "stages": {"train": tr.hash, "eval": ev.hash},
                 }

@@ -10,6 +10,8 @@ import sys
 import time
 from pathlib import Path
 
+from services.core.runtime import host_description
+
 ROOT = Path(__file__).resolve().parents[2]
 
 
@@ -58,8 +60,10 @@ def test_a_question_runs_caches_its_stages_and_resumes_after_a_kill(tmp_path):
     assert [c["eval_views"] for c in cells] == [["F"], ["F", "FL", "FR"], ["F", "FL", "FR", "FU", "FD"]]
     assert len({c["stages"]["train"] for c in cells}) == 1  # one checkpoint serves every evaluation
     assert all(c["episodes"] == 1 for c in cells) and results["versions"]["torch"]
+    assert {c["train_host"] for c in cells} == {host_description()}  # where the weights were made
     table = (root / "q5-lift-smoke" / "table.md").read_text()
     assert table.startswith("# Q5") and table.count("| five15 |") == 3
+    assert f"Trained on {host_description()}." in table
     assert (root / "q5-lift-smoke" / "success_vs_n.png").stat().st_size > 5000
 
     again = subprocess.run(experiment(root), cwd=ROOT, capture_output=True, text=True, timeout=300)
