@@ -401,6 +401,7 @@ class Runner:
                 self.progress(f"[{i}/{len(self.cells)}] {describe(cell)}")
                 ev = self.evaluation(cell)
             tr = self.training_stage(cell)  # made before its evaluation: no second walk through the stages
+            trained = tr.facts() if tr.done else {}
             rep = json.loads((ev.dir / "eval" / "report.json").read_text())["summary"]
             rows.append(
                 {
@@ -409,8 +410,8 @@ class Runner:
                     "episodes": rep["episodes"],
                     "success_rate": rep["success_rate"],
                     "wilson95": rep["wilson95"],
-                    "train_wall_s": tr.facts().get("wall_s") if tr.done else None,
-                    "train_host": tr.facts().get("host") if tr.done else None,  # its weights depend on the CPU
+                    "train_wall_s": trained.get("wall_s"),
+                    "train_host": trained.get("host"),  # its weights depend on the CPU
                     "eval_wall_s": ev.facts().get("wall_s"),
                     "stages": {"train": tr.hash, "eval": ev.hash},
                 }
