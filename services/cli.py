@@ -173,7 +173,15 @@ def _experiment(args: argparse.Namespace) -> int:
         if args.task not in ("lift", "can", "square"):
             raise ConfigError(f"unknown task {args.task!r}; tasks: lift, can, square")
         say = lambda m: print(m, flush=True)
-        runner = Runner(args.question, args.task, args.scale, Path(args.root), progress=say, only=args.only)
+        seeds = None
+        if args.seeds is not None:
+            try:
+                seeds = [int(x) for x in args.seeds.split(",")]
+            except ValueError:
+                raise ConfigError(f"--seeds {args.seeds!r}: expected integers separated by commas, e.g. 0,1,2") from None
+        runner = Runner(
+            args.question, args.task, args.scale, Path(args.root), progress=say, only=args.only, seeds=seeds
+        )
         for sig in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):
             signal.signal(sig, _interrupt)
         runner.run(table_only=args.table_only)
@@ -371,6 +379,12 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="AXIS=VALUE",
         help="run only the cells with this value: train=F, space=camera, N=10, eval_views=F,FL, seed=0 "
         "(repeatable; two values of one axis: either)",
+    )
+    p.add_argument(
+        "--seeds",
+        metavar="0,1,2",
+        help="training seeds per cell, instead of the scale's (tiny: 0; paper: 0,1,2); a cell's stages "
+        "with seed 0 are the same whichever list it is in",
     )
     p.add_argument(
         "--table-only",

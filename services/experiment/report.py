@@ -55,7 +55,8 @@ def write_table(results: dict[str, Any], path: Path) -> None:
         f"Task `{results['task']}`, scale `{results['scale']}` (preset {results['scale_settings']['preset']}, "
         f"{results['scale_settings']['steps']} steps, {len(seeds)} training seed(s) per cell: "
         f"{', '.join(map(str, seeds))}, {results['scale_settings']['episodes']} evaluation episodes per seed, "
-        "the same evaluation seeds for every cell). Success k/n pooled over training seeds, Wilson 95%.",
+        "the same evaluation seeds for every cell). Success k/n pooled over training seeds, Wilson 95% "
+        "over the pooled episodes; with several seeds, each seed's successes after it, in seed order.",
         *(
             [f"Only the cells with {describe_only(results['only'])} (`--only`): part of the question's grid."]
             if results.get("only")
@@ -73,7 +74,11 @@ def write_table(results: dict[str, Any], path: Path) -> None:
                 row.append("-")
                 continue
             lo, hi = wilson(k, m)
-            row.append(f"{k / m:.2f} ({k}/{m}, {lo:.2f}-{hi:.2f})")
+            here = sorted((c for c in cells if c["N"] == n), key=lambda c: c["seed"])
+            # with several training seeds, each one's count: the spread between training runs,
+            # which the pooled interval (over episodes) does not cover
+            each = "; seeds " + ", ".join(f"{c['successes']}" for c in here) if len(here) > 1 else ""
+            row.append(f"{k / m:.2f} ({k}/{m}, {lo:.2f}-{hi:.2f}{each})")
         lines.append(f"| {label} | {space} | {ev} | " + " | ".join(row) + " |")
     missing = results.get("missing") or []
     if missing:

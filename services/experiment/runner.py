@@ -183,11 +183,16 @@ class Runner:
         root: Path,
         progress: Callable[[str], None] = print,
         only: list[str] = (),
+        seeds: list[int] | None = None,
     ):
         self.name = question.lower()
         self.q = load_question(self.name)
         self.scale_name = scale
         self.scale = load_scale(scale)
+        if seeds is not None:  # training seeds other than the scale's (several per cell on a CPU, overnight)
+            if not seeds or any(not isinstance(x, int) or x < 0 for x in seeds) or len(set(seeds)) != len(seeds):
+                raise ConfigError(f"seeds {seeds!r}: expected distinct non-negative integers")
+            self.scale = {**self.scale, "seeds": list(seeds)}
         self.task = task
         self.root = Path(root)
         self.cache = self.root / "cache"

@@ -56,3 +56,22 @@ def test_a_run_waits_for_a_stage_another_run_is_making(tmp_path):
     waiter.join(10)
     assert got and got[0].hash == st.hash and got[0].done
     assert len(said) == 1  # it found the stage finished: no collection of its own
+
+
+def test_seeds_other_than_the_scales_add_cells_and_keep_seed_0s_stages(tmp_path):
+    import pytest
+
+    from services.core.config import ConfigError
+
+    one = Runner("q1", "lift", "tiny", tmp_path, only=["N=10", "space=camera", "train=F"])
+    three = Runner("q1", "lift", "tiny", tmp_path, only=["N=10", "space=camera", "train=F"], seeds=[0, 1, 2])
+    assert [c["seed"] for c in one.cells] == [0] and [c["seed"] for c in three.cells] == [0, 1, 2]
+    # seed 0 is the same training whichever list it came from; another seed is another training
+    # on the same dataset
+    t0, t1 = three.training_stage(three.cells[0]), three.training_stage(three.cells[1])
+    assert t0.hash == one.training_stage(one.cells[0]).hash and t1.hash != t0.hash
+    assert three.dataset_stage(three.cells[1]).hash == three.dataset_stage(three.cells[0]).hash
+    assert Runner("q1", "lift", "tiny", tmp_path, only=["seed=2"], seeds=[0, 2]).cells[0]["seed"] == 2
+    for bad in ([], [0, 0], [-1]):
+        with pytest.raises(ConfigError, match="seeds"):
+            Runner("q1", "lift", "tiny", tmp_path, seeds=bad)
