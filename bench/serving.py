@@ -11,7 +11,14 @@ fanning out to five worker processes (one intra-op thread each) -- and then, in 
 rounds so that the machine's load hits both alike, has 1, 4 or 8 client threads call GetAction
 composing the first V of F, FL, FR, FU, FD. Reports per (backend, V, clients) the client-measured
 p50/p99 latency and the server's p50 step time, and the two targets: the fan-out's extra time
-per denoising step over in-process, and V=3 composed against V=1 (both in-process).
+per denoising step over in-process (from the request latency, and from the server's step time
+alone, which leaves out opening and closing the streams), and V=3 composed against V=1 (both
+in-process).
+
+The floor under the fan-out's extra time is one gRPC round trip per step: in the same rounds the
+bench times a bare ``DenoiseWorker.Denoise`` stream to an echo process (``--echo-server``: the same
+step messages, answered at once, no model) from a ``grpc.aio`` client, as the server calls its
+workers (row ``grpc-echo``, target ``grpc_round_trip_floor_ms``).
 """
 
 from __future__ import annotations
@@ -116,6 +123,59 @@ def run_round(addr: str, frames, states, views: list[str], clients: int, request
     return out
 
 
+async def _echo_serve() -> None:
+    import asyncio
+
+    import grpc
+
+    from services.pb import policy_pb2, policy_pb2_grpc
+
+    class Echo(policy_pb2_grpc.DenoiseWorkerServicer):
+        async def Denoise(self, request_iterator, context):
+            while True:
+                req = await context.read()
+                if req is grpc.aio.EOF:
+                    return
+                await context.write(
+                    policy_pb2.DenoiseReply(eps=req.step.x) if req.HasField("step") else policy_pb2.DenoiseReply()
+                )
+
+    server = grpc.aio.server()
+    policy_pb2_grpc.add_DenoiseWorkerServicer_to_server(Echo(), server)
+    port = server.add_insecure_port("127.0.0.1:0")
+    await server.start()
+    print(f"ready echo 127.0.0.1:{port}", flush=True)
+    await asyncio.Event().wait()
+
+
+def echo_round(addr: str, n: int, tp: int = 16) -> list[float]:
+    """Round trips (ms) of ``n`` step messages of a (tp, 7) float32 chunk over one Denoise stream."""
+    import asyncio
+    import time
+
+    import grpc
+    import numpy as np
+
+    from services.core.tensors import from_tensor, to_tensor
+    from services.pb import policy_pb2, policy_pb2_grpc
+
+    async def go() -> list[float]:
+        async with grpc.aio.insecure_channel(addr) as ch:
+            call = policy_pb2_grpc.DenoiseWorkerStub(ch).Denoise()
+            x = np.random.default_rng(0).standard_normal((tp, 7)).astype(np.float32)
+            out = []
+            for i in range(n + 1):  # the first opens the stream: not timed
+                t = time.perf_counter()
+                await call.write(policy_pb2.DenoiseRequest(step=policy_pb2.DenoiseStep(k=i, x=to_tensor(x))))
+                from_tensor((await call.read()).eps)
+                if i:
+                    out.append((time.perf_counter() - t) * 1e3)
+            await call.done_writing()
+            return out
+
+    return asyncio.run(go())
+
+
 def pct(xs: list[float], q: float) -> float:
     xs = sorted(xs)
     return xs[min(len(xs) - 1, round(q * (len(xs) - 1)))]
@@ -132,7 +192,13 @@ def main() -> None:
     ap.add_argument("--paper-clients", default="1", help="clients for paper presets")
     ap.add_argument("--size", type=int, default=84)
     ap.add_argument("--device", default="cpu")
+    ap.add_argument("--echo-server", action="store_true", help=argparse.SUPPRESS)  # the bench's echo process
     args = ap.parse_args()
+    if args.echo_server:
+        import asyncio
+
+        asyncio.run(_echo_serve())
+        return
 
     with tempfile.TemporaryDirectory(prefix="vs-serve-bench-") as tmp:
         ds = make_dataset(Path(tmp), args.size)
@@ -145,6 +211,17 @@ def main() -> None:
             requests = args.paper_requests if paper else args.requests
             dev = ["--device", args.device]
             workers = [start(["worker", "--checkpoint", str(ckpt), *dev], "worker") for _ in range(5)]
+            echo = subprocess.Popen(
+                [sys.executable, str(Path(__file__).resolve()), "--echo-server"],
+                cwd=ROOT,
+                stdout=subprocess.PIPE,
+                stderr=subprocess.DEVNULL,
+                text=True,
+            )
+            line = echo.stdout.readline()
+            if not line.startswith("ready echo "):
+                raise SystemExit("the echo process did not start")
+            echo_addr = line.split()[2]
             servers = {
                 "in-process": start(
                     ["serve", "--checkpoint", str(ckpt), "--listen", "127.0.0.1:0", "--in-process", *dev], "policy"
@@ -163,9 +240,11 @@ def main() -> None:
             }
             try:
                 results: dict[tuple, list] = {}
+                echo_ms: list[float] = []
                 for _, addr in servers.values():  # warm-up: first calls pay for allocations
                     run_round(addr, frames, states, VIEWS, 1, 2)
                 for _ in range(args.rounds):
+                    echo_ms += echo_round(echo_addr, 10 * requests)
                     for n_views in [int(v) for v in args.views.split(",")]:
                         for clients in clients_list:
                             for name, (_, addr) in servers.items():
@@ -187,8 +266,17 @@ def main() -> None:
                             "step_p50_ms": round(statistics.median(g[1] for g in got), 3),
                         }
                     )
+                rows.append(
+                    {
+                        "preset": preset,
+                        "backend": "grpc-echo",
+                        "n": len(echo_ms),
+                        "rtt_p50_ms": round(pct(echo_ms, 0.5), 3),
+                        "rtt_p99_ms": round(pct(echo_ms, 0.99), 3),
+                    }
+                )
             finally:
-                for proc, _ in [*servers.values(), *workers]:
+                for proc, _ in [*servers.values(), *workers, (echo, None)]:
                     proc.terminate()
                     proc.wait(timeout=30)
 
@@ -197,7 +285,7 @@ def main() -> None:
             (
                 r
                 for r in rows
-                if (r["preset"], r["backend"], r["views"], r["clients"]) == (preset, backend, views, clients)
+                if (r["preset"], r["backend"], r.get("views"), r.get("clients")) == (preset, backend, views, clients)
             ),
             None,
         )
@@ -208,6 +296,10 @@ def main() -> None:
             a, b = row(preset, "fan-out", v, 1), row(preset, "in-process", v, 1)
             if a and b:
                 targets[f"{preset}_fanout_extra_ms_per_step_V{v}"] = round((a["p50_ms"] - b["p50_ms"]) / 10, 3)
+                targets[f"{preset}_fanout_extra_step_p50_ms_V{v}"] = round(a["step_p50_ms"] - b["step_p50_ms"], 3)
+        floor = next((r for r in rows if r["preset"] == preset and r["backend"] == "grpc-echo"), None)
+        if floor:
+            targets[f"{preset}_grpc_round_trip_floor_ms"] = floor["rtt_p50_ms"]
         one, three = row(preset, "in-process", 1, 1), row(preset, "in-process", 3, 1)
         if one and three:
             targets[f"{preset}_V3_over_V1_in_process"] = round(three["p50_ms"] / one["p50_ms"], 3)
