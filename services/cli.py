@@ -178,7 +178,7 @@ def _experiment(args: argparse.Namespace) -> int:
             try:
                 seeds = [int(x) for x in args.seeds.split(",")]
             except ValueError:
-                raise ConfigError(f"--seeds {args.seeds!r}: expected integers separated by commas, e.g. 0,1,2") from None
+                raise ConfigError(f"--seeds {args.seeds!r}: expected integers separated by commas (0,1,2)") from None
         runner = Runner(
             args.question, args.task, args.scale, Path(args.root), progress=say, only=args.only, seeds=seeds
         )
