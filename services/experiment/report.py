@@ -69,12 +69,12 @@ def write_table(results: dict[str, Any], path: Path) -> None:
     for (label, space, ev), cells in sorted(_group(results).items()):
         row = []
         for n in ns:
-            k, m = _pooled([c for c in cells if c["N"] == n])
+            here = sorted((c for c in cells if c["N"] == n), key=lambda c: c["seed"])
+            k, m = _pooled(here)
             if m == 0:
                 row.append("-")
                 continue
             lo, hi = wilson(k, m)
-            here = sorted((c for c in cells if c["N"] == n), key=lambda c: c["seed"])
             # with several training seeds, each one's count: the spread between training runs,
             # which the pooled interval (over episodes) does not cover
             each = "; seeds " + ", ".join(f"{c['successes']}" for c in here) if len(here) > 1 else ""
