@@ -76,9 +76,12 @@ def make_checkpoint(ds: Path, out: Path, preset: str, device: str) -> Path:
     return out
 
 
-def start(args: list[str], kind: str) -> tuple[subprocess.Popen, str]:
+def start(
+    args: list[str], kind: str, command: tuple[str, ...] = ("-m", "services.policy")
+) -> tuple[subprocess.Popen, str]:
+    """Start ``python COMMAND ARGS`` and wait for its ``ready KIND ADDRESS`` line."""
     proc = subprocess.Popen(
-        [sys.executable, "-m", "services.policy", *args],
+        [sys.executable, *command, *args],
         cwd=ROOT,
         stdout=subprocess.PIPE,
         stderr=subprocess.DEVNULL,
@@ -211,17 +214,7 @@ def main() -> None:
             requests = args.paper_requests if paper else args.requests
             dev = ["--device", args.device]
             workers = [start(["worker", "--checkpoint", str(ckpt), *dev], "worker") for _ in range(5)]
-            echo = subprocess.Popen(
-                [sys.executable, str(Path(__file__).resolve()), "--echo-server"],
-                cwd=ROOT,
-                stdout=subprocess.PIPE,
-                stderr=subprocess.DEVNULL,
-                text=True,
-            )
-            line = echo.stdout.readline()
-            if not line.startswith("ready echo "):
-                raise SystemExit("the echo process did not start")
-            echo_addr = line.split()[2]
+            echo, echo_addr = start(["--echo-server"], "echo", (str(Path(__file__).resolve()),))
             servers = {
                 "in-process": start(
                     ["serve", "--checkpoint", str(ckpt), "--listen", "127.0.0.1:0", "--in-process", *dev], "policy"
@@ -276,7 +269,7 @@ def main() -> None:
                     }
                 )
             finally:
-                for proc, _ in [*servers.values(), *workers, (echo, None)]:
+                for proc, _ in [*servers.values(), *workers, (echo, echo_addr)]:
                     proc.terminate()
                     proc.wait(timeout=30)
 
