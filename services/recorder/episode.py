@@ -183,6 +183,9 @@ def episode_meta(
         flags.append(f"clipped: {ep.clipped} ticks limited by the safety layer (speed, workspace or gripper range)")
     if ticks and states != ticks:
         flags.append(f"robot/state: {states} states for {ticks} ticks")
+    applied = ep.written[APPLIED_ACTION.key]
+    if ticks and applied and applied != ticks:  # a source without applied actions is not flagged
+        flags.append(f"robot/applied: {applied} applied actions for {ticks} ticks")
     for cam, n in sorted(meta.frames.items()):
         if n != meta.ticks:
             flags.append(f"camera {cam}: {n} frames for {meta.ticks} ticks")

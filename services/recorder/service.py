@@ -10,9 +10,10 @@ Threads and ownership:
   STOP never races a message that arrived before it.
 - liveliness changes of other services are queued as events and flag the open episode.
 
-STOP waits (up to ``stop_grace_s``) until the file holds the ``ticks`` robot states and frames
-the source says it published, then writes what is queued, the metadata, and closes. SIGTERM
-(``close``) writes what is queued and closes the open episode flagged ``interrupted``.
+STOP waits (up to ``stop_grace_s``) until the file holds the ``ticks`` robot states, frames,
+applied actions and task states the source says it published, then writes what is queued, the
+metadata, and closes. SIGTERM (``close``) writes what is queued and closes the open episode
+flagged ``interrupted``.
 """
 
 from __future__ import annotations
@@ -33,7 +34,15 @@ from google.protobuf.message import Message
 from services.core.bus import Bus, Received
 from services.core.clock import now_ns
 from services.core.runtime import serve
-from services.core.topics import EPISODE, EPISODE_CONTROL, ROBOT_STATE, Topic, topic_for_key
+from services.core.topics import (
+    APPLIED_ACTION,
+    EPISODE,
+    EPISODE_CONTROL,
+    ROBOT_STATE,
+    TASK_STATE,
+    Topic,
+    topic_for_key,
+)
 from services.core.validation import Context, Invalid, capture_ns, check_episode_request, decode_strict, parse
 from services.pb.episode_pb2 import (
     EPISODE_COMMAND_DISCARD,
@@ -61,6 +70,8 @@ log = logging.getLogger(__name__)
 
 INTERRUPTED = "interrupted"
 _BATCH = 32  # items taken from one channel queue per round, so no channel starves the others
+# One message per tick when the source publishes them at all (a real robot has no task state).
+_OPTIONAL_PER_TICK = (APPLIED_ACTION.key, TASK_STATE.key)
 _LOG_FIRST = 3  # malformed payloads logged in full per topic and episode; then every 100th
 # Cameras republish calibration at ~1 Hz: one cached longer than this before START is from a
 # camera that may be gone, so it does not make the episode expect frames from that camera.
@@ -306,7 +317,10 @@ class Recorder:
         fut.set_result(self._finish_stop(req))
 
     def _has_ticks(self, ep: _Episode, ticks: int) -> bool:
-        """Every robot state and frame of ``ticks`` is accounted for: written or dropped."""
+        """Every per-tick message of ``ticks`` is accounted for, written or dropped: the robot
+        states, the frames of every camera, and the applied actions and task states if the source
+        publishes them (the applied action of the last tick goes out after its state and frames,
+        so waiting for states alone could close the file one action short)."""
         with self._drop_lock:
             drops = dict(self._drops)
 
@@ -314,7 +328,9 @@ class Recorder:
         def seen(key: str) -> int:
             return ep.written[key] + drops.get(key, 0)
 
-        return seen(ROBOT_STATE.key) >= ticks and all(seen(f"camera/{c}/image") >= ticks for c in ep.cameras)
+        keys = [ROBOT_STATE.key, *(k for k in _OPTIONAL_PER_TICK if seen(k))]
+        keys += [f"camera/{c}/image" for c in ep.cameras]
+        return all(seen(k) >= ticks for k in keys)
 
     def _finish_stop(self, req: EpisodeRequest) -> EpisodeReply:
         if self._episode is None:  # discarded meanwhile

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import threading
 import time
 from contextlib import ExitStack
 
@@ -119,25 +120,28 @@ class Source:
             self.calib[c].put(self.camera(c).calibration_msg(32, 24, stamp))
             self.pose[c].put(self.camera(c).pose_msg(stamp))
 
-    def tick(self, i: int, seq: int | None = None) -> int:
+    def tick(self, i: int, seq: int | None = None, observe: bool = True, act: bool = True) -> int:
+        """Tick ``i``: its state and frames (``observe``), then its applied action and task state (``act``)."""
         stamp = self.t0 + i * PERIOD_NS
         seq = i if seq is None else seq
-        state = RobotState(
-            tick=i, eef_pos=[0.4, 0.0, 0.2], eef_quat_wxyz=[1, 0, 0, 0]
-        )  # a source that names no episode
-        state.header.stamp_ns, state.header.seq = stamp, seq
-        self.state.put(state)
-        for c in self.cameras:
-            self.images[c].put(compressed_image(self.frame, stamp, c))
-        applied = AppliedAction(tick=i)
-        applied.header.stamp_ns, applied.header.seq = stamp, seq
-        applied.action.dp.extend([0.0, 0.0, 0.01])
-        applied.action.drot.extend([0.0, 0.0, 0.0])
-        self.applied.put(applied)
-        task = TaskState(tick=i, task="lift", seed=3)
-        task.header.stamp_ns, task.header.seq = stamp, seq
-        self.task.put(task)
-        self.stamps.append(stamp)
+        if observe:
+            state = RobotState(
+                tick=i, eef_pos=[0.4, 0.0, 0.2], eef_quat_wxyz=[1, 0, 0, 0]
+            )  # a source that names no episode
+            state.header.stamp_ns, state.header.seq = stamp, seq
+            self.state.put(state)
+            for c in self.cameras:
+                self.images[c].put(compressed_image(self.frame, stamp, c))
+            self.stamps.append(stamp)
+        if act:
+            applied = AppliedAction(tick=i)
+            applied.header.stamp_ns, applied.header.seq = stamp, seq
+            applied.action.dp.extend([0.0, 0.0, 0.01])
+            applied.action.drot.extend([0.0, 0.0, 0.0])
+            self.applied.put(applied)
+            task = TaskState(tick=i, task="lift", seed=3)
+            task.header.stamp_ns, task.header.seq = stamp, seq
+            self.task.put(task)
         return stamp
 
     def run(self, ticks: range) -> None:
@@ -164,9 +168,13 @@ def test_records_a_session_into_a_self_contained_mcap(net, make_recorder, tmp_pa
 
     reply = start(pub, "ep-0001")
     assert reply.ok and reply.recording, reply.error
-    src.run(range(25))
+    src.run(range(12))
+    # Republished mid-episode (1 Hz / sim reset): recorded too. Ahead of later ticks on the same
+    # session, so it is in before STOP's tick count is complete (one published after the last tick
+    # could arrive after the file closed).
+    src.publish_calibration()
+    src.run(range(12, 25))
     stray.put(b"not recorded")
-    src.publish_calibration()  # republished mid-episode (1 Hz / sim reset): recorded too
     reply = control(pub, EPISODE_COMMAND_STOP, episode_id="ep-0001", success=True, ticks=25)
     assert reply.ok, reply.error
     meta = reply.meta
@@ -425,6 +433,38 @@ def test_an_episode_below_the_rate_floor_is_flagged(net, make_recorder):
     flags = list(reply.meta.flags)
     assert "low rate: robot state at 50.00 Hz < 0.9 x 100 Hz" in flags
     assert "robot/state: 10 states for 12 ticks" in flags and "camera F: 10 frames for 12 ticks" in flags
+
+
+def test_stop_waits_for_the_last_ticks_applied_action(net, make_recorder):
+    make_recorder()
+    pub = net.client()
+    pub.wait_alive(["recorder"], timeout=10)
+    src = Source(pub, cameras=("F",))
+    assert start(pub, "late").ok
+    src.run(range(9))
+    src.tick(9, act=False)  # the last tick's state and frame are in; what it applied is not yet
+    late = threading.Timer(0.5, lambda: src.tick(9, observe=False))
+    late.start()
+    t0 = time.monotonic()
+    reply = control(pub, EPISODE_COMMAND_STOP, success=True, ticks=10)
+    late.join()
+    assert reply.ok and time.monotonic() - t0 >= 0.5, reply.error  # STOP waited for it
+    assert reply.meta.ticks == 10 and list(reply.meta.flags) == []
+    ep = read_episode(reply.meta.path)
+    assert len(ep.messages("/robot/applied")) == len(ep.messages("/sim/task")) == len(ep.messages("/robot/state")) == 10
+
+
+def test_an_episode_short_of_applied_actions_is_flagged(net, make_recorder):
+    make_recorder(stop_grace_s=0.2)
+    pub = net.client()
+    pub.wait_alive(["recorder"], timeout=10)
+    src = Source(pub, cameras=("F",))
+    assert start(pub, "short").ok
+    src.run(range(7))
+    src.tick(7, act=False)  # the source dies between its last observation and its action
+    reply = control(pub, EPISODE_COMMAND_STOP, success=False, ticks=8)
+    assert reply.ok and reply.meta.ticks == 8
+    assert list(reply.meta.flags) == ["robot/applied: 7 applied actions for 8 ticks"]
 
 
 def test_a_stop_that_says_interrupted_flags_the_episode(net, make_recorder):
