@@ -6,7 +6,8 @@ and -- sim only -- the privileged task state for scripted experts. Calibration a
 go out at start-up, on every reset, and every ``calibration_period_s``.
 
 Episode control is the queryable ``sim/control`` (SimControlRequest): RESET loads a task and
-seed without ticking, RUN starts ticking, PAUSE finishes the current tick and stops. Requests
+seed without ticking, RUN starts ticking (up to its ``max_ticks``, where the loop pauses by
+itself, so a tick limit is exact), PAUSE finishes the current tick and stops. Requests
 are executed on the loop's own thread between ticks, because the renderer's GL context
 belongs to the thread that created it.
 """
@@ -77,6 +78,7 @@ class SimService:
             observers=[self._observe],
         )
         self.running = False
+        self.max_ticks = 0  # set by RUN: the loop pauses itself at this tick count (0: no limit)
         self._jobs: queue.Queue[tuple[SimControlRequest, Future]] = queue.Queue()
         self._stop = threading.Event()
         self._calib_thread = threading.Thread(target=self._calibration_loop, name="calibration", daemon=True)
@@ -136,12 +138,16 @@ class SimService:
             log.info("reset task=%s seed=%d episode=%s", task, req.seed, req.episode_id)
             return SimControlReply(ok=True, ticks=0, success=bool(self.world.success()), lockstep=not self.cfg.realtime)
         if req.command == SimCommand.SIM_COMMAND_RUN:
-            self.running = True
+            self.max_ticks = int(req.max_ticks)
+            self.running = not self._at_limit()
             return SimControlReply(ok=True, ticks=self.loop.tick)
         if req.command == SimCommand.SIM_COMMAND_PAUSE:
             self.running = False
             return SimControlReply(ok=True, ticks=self.loop.tick, success=bool(self.world.success()))
         return SimControlReply(ok=False, error=f"unknown sim command {req.command}")
+
+    def _at_limit(self) -> bool:
+        return 0 < self.max_ticks <= self.loop.tick
 
     def _load(self, task: str) -> None:
         """Swap in a world for another task (the renderer must be created on this thread)."""
@@ -176,6 +182,10 @@ class SimService:
                 rate.reset()
                 was_running = True
             self.loop.step()
+            if self._at_limit():  # the episode's last tick is complete: no next observation
+                self.running = False
+                log.info("episode %s: paused at its limit of %d ticks", self.loop.episode_id, self.max_ticks)
+                continue
             if self.cfg.realtime:
                 rate.sleep()
         log.info(

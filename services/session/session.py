@@ -1,7 +1,8 @@
 """The collection session: drives sim, teleop and recorder through N successful episodes.
 
-Per attempt: sim RESET (task, seed) -> recorder START -> sim RUN -> watch the task state until
-success has held for ``settle_ticks`` or the tick limit -> sim PAUSE (the sim completes its tick,
+Per attempt: sim RESET (task, seed) -> recorder START -> sim RUN (which pauses by itself at the
+tick limit) -> watch the task state until success has held for ``settle_ticks`` or the tick
+limit -> sim PAUSE (the sim completes its tick,
 so observations == applied actions) -> recorder STOP with the tick count on success, DISCARD on
 an expert failure (reported; the next seed is tried). Everything goes over Zenoh queries; a
 service that disappears mid-episode stops the session with a clear error, and the partial
@@ -197,7 +198,9 @@ class Session:
             lockstep=reset.lockstep,
         )
         try:
-            self._sim(SimCommand.SIM_COMMAND_RUN)
+            # The sim stops itself at the limit: a PAUSE after the last tick would land a tick or
+            # two late on a busy machine, and a limit must hold exactly.
+            self._sim(SimCommand.SIM_COMMAND_RUN, max_ticks=self.cfg.tick_limit())
             self._wait_done(self.cfg.tick_limit())
             paused = self._sim(SimCommand.SIM_COMMAND_PAUSE)
         except BaseException as exc:
@@ -233,7 +236,7 @@ class Session:
         (first renders and JPEG encodes, zenoh routes, the expert's first call)."""
         self._watch("warmup")
         self._sim(SimCommand.SIM_COMMAND_RESET, task=self.cfg.task, seed=self.cfg.seed, episode_id="warmup")
-        self._sim(SimCommand.SIM_COMMAND_RUN)
+        self._sim(SimCommand.SIM_COMMAND_RUN, max_ticks=self.cfg.warmup_ticks)
         try:
             self._wait_done(self.cfg.warmup_ticks)
         finally:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import threading
+import time
 
 import pytest
 from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
@@ -130,3 +131,31 @@ def test_sim_killed_mid_episode_flags_it_and_the_recorder_carries_on(stack):
     stack.check_alive()
     assert read_episode(meta.path).metadata["flags"]
     assert after.frames["F"] == ticks and not after.flags
+
+
+def test_a_run_with_a_tick_limit_stops_the_sim_exactly_there(stack):
+    """A late PAUSE (a busy machine, a slow session) must not stretch an episode past its limit."""
+    with Bus(stack.bus_config()) as bus:
+        bus.wait_alive(["sim", "teleop", "recorder"], timeout=60)
+        seen: list[int] = []
+        last = threading.Event()
+
+        def on_task(msg: TaskState, _rx) -> None:
+            if msg.episode_id == "limit":
+                seen.append(msg.tick)
+                if msg.tick == 5:
+                    last.set()
+
+        bus.subscribe(topics.TASK_STATE, on_task)
+        sim(bus, SimCommand.SIM_COMMAND_RESET, task="lift", seed=7, episode_id="limit")
+        recorder(bus, EpisodeCommand.EPISODE_COMMAND_START, episode_id="limit", task="lift", seed=7, rig="three15")
+        assert sim(bus, SimCommand.SIM_COMMAND_RUN, max_ticks=6).ticks == 0
+        assert last.wait(timeout=120), f"the sim stopped short of its limit: ticks {seen}"
+        time.sleep(1.0)  # in lockstep the sim would tick on meanwhile
+        assert sim(bus, SimCommand.SIM_COMMAND_RUN, max_ticks=6).ticks == 6  # at its limit: stays paused
+        ticks = sim(bus, SimCommand.SIM_COMMAND_PAUSE).ticks
+        meta = recorder(bus, EpisodeCommand.EPISODE_COMMAND_STOP, episode_id="limit", success=False, ticks=ticks).meta
+    assert ticks == 6 and seen == list(range(6))
+    ep = read_episode(meta.path)
+    assert len(ep.messages("/robot/state")) == len(ep.messages("/robot/applied")) == len(ep.messages("/sim/task")) == 6
+    assert not any(r.msg.stale for r in ep.messages("/robot/applied")) and list(meta.flags) == []
