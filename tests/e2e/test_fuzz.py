@@ -17,7 +17,7 @@ from services.core.tensors import compressed_image
 from services.core.validation import Invalid, check, parse
 from services.pb.common_pb2 import Header
 from services.pb.control_pb2 import AppliedAction, EefAction, EefCommand
-from services.pb.episode_pb2 import EpisodeReply, SimControlReply, SimControlRequest
+from services.pb.episode_pb2 import EpisodeReply, SimCommand, SimControlReply, SimControlRequest
 from services.pb.sensors_pb2 import ObjectPose, RobotState, TaskState
 from services.recorder.reader import read_episode
 from services.session.collect import LocalStack
@@ -109,10 +109,39 @@ def test_fuzzing_every_topic_during_a_recording(tmp_path):
             "teleop": [],
         },
     )
+    cfg = SessionConfig(bus=stack.bus_config(), task="can", rig="three15", episodes=1, warmup_ticks=0)
     with stack, Bus(stack.bus_config()) as bus:
         pubs = {t.key: bus.publisher(t) for t in fuzz_topics()}
         ticks: queue.Queue = queue.Queue()
         done = threading.Event()
+        fuzzed: list[int] = []
+        errors: list[BaseException] = []
+
+        def sim(command: SimCommand, **fields) -> None:
+            reply = SimControlReply.FromString(
+                bus.query(topics.SIM_CONTROL, SimControlRequest(command=command, **fields).SerializeToString(), 30)
+            )
+            assert reply.ok, reply.error
+
+        def fuzz_tick(msg: TaskState) -> None:
+            # The sim waits while this tick's payloads go out, so they all land inside the episode
+            # however far behind a loaded machine puts this thread (in lockstep it would not wait).
+            sim(SimCommand.SIM_COMMAND_PAUSE)
+            for t in fuzz_topics():
+                for p in corpus(rng, t, msg.header.stamp_ns)[:PER_TICK]:
+                    pubs[t.key].put(p)
+                    sent[t.key] = sent.get(t.key, 0) + 1
+            for key, payload in (
+                (topics.EPISODE_CONTROL, bytes(rng.integers(0, 256, 40, dtype=np.uint8))),
+                (topics.SIM_CONTROL, SimControlRequest(command=9, task="x").SerializeToString()),
+                # A sim RESET's bytes read as an EpisodeRequest with a field of the wrong wire type.
+                (topics.EPISODE_CONTROL, SimControlRequest(command=1, task="lift", seed=5).SerializeToString()),
+            ):
+                raw = bus.query(key, payload, timeout=10)
+                reply = (EpisodeReply if key == topics.EPISODE_CONTROL else SimControlReply).FromString(raw)
+                control_replies.append(reply.ok)
+            sim(SimCommand.SIM_COMMAND_RUN, max_ticks=cfg.tick_limit())  # the session's limit stays
+            fuzzed.append(msg.tick)
 
         def fuzz() -> None:  # its own thread: a zenoh callback must not publish bursts or query
             while not done.is_set():
@@ -120,18 +149,11 @@ def test_fuzzing_every_topic_during_a_recording(tmp_path):
                     msg = ticks.get(timeout=0.1)
                 except queue.Empty:
                     continue
-                for t in fuzz_topics():
-                    for p in corpus(rng, t, msg.header.stamp_ns)[:PER_TICK]:
-                        pubs[t.key].put(p)
-                        sent[t.key] = sent.get(t.key, 0) + 1
-                for key, payload in (
-                    (topics.EPISODE_CONTROL, bytes(rng.integers(0, 256, 40, dtype=np.uint8))),
-                    (topics.SIM_CONTROL, SimControlRequest(command=9, task="x").SerializeToString()),
-                    (topics.EPISODE_CONTROL, SimControlRequest(command=1, task="lift").SerializeToString()),
-                ):
-                    raw = bus.query(key, payload, timeout=10)
-                    reply = (EpisodeReply if key == topics.EPISODE_CONTROL else SimControlReply).FromString(raw)
-                    control_replies.append(reply.ok)
+                try:
+                    fuzz_tick(msg)
+                except BaseException as exc:  # reported by the test, not lost with the thread
+                    errors.append(exc)
+                    done.set()
                 if msg.tick == FUZZ_TICKS[-1]:
                     done.set()
 
@@ -142,13 +164,14 @@ def test_fuzzing_every_topic_during_a_recording(tmp_path):
         fuzzer = threading.Thread(target=fuzz, daemon=True)
         fuzzer.start()
         bus.subscribe(topics.TASK_STATE, on_task)
-        cfg = SessionConfig(bus=stack.bus_config(), task="can", rig="three15", episodes=1, warmup_ticks=0)
         result = Session(cfg, bus, progress=lambda m: None).run()
         done.set()
         fuzzer.join(timeout=30)
         stack.check_alive()  # every service is still running
         assert bus.wait_alive({"sim", "teleop", "recorder"}, timeout=10) is None
-    assert done.is_set() and control_replies and not any(control_replies)  # every bad request refused
+    assert not errors, errors
+    assert fuzzed == list(FUZZ_TICKS)  # every fuzzed tick inside the episode, before it ended
+    assert len(control_replies) == 3 * len(FUZZ_TICKS) and not any(control_replies)  # every bad request refused
     assert result.recorded and result.attempts[0].success  # the expert still did its job
     ep = read_episode(result.recorded[0].meta.path)
     ticks = ep.metadata["ticks"]
