@@ -6,8 +6,9 @@ and -- sim only -- the privileged task state for scripted experts. Calibration a
 go out at start-up, on every reset, and every ``calibration_period_s``.
 
 Episode control is the queryable ``sim/control`` (SimControlRequest): RESET loads a task and
-seed without ticking, RUN starts ticking (up to its ``max_ticks``, where the loop pauses by
-itself, so a tick limit is exact), PAUSE finishes the current tick and stops. Requests
+seed without ticking, RUN starts ticking (up to its ``max_ticks`` or until the task's success has
+held ``settle_ticks``, where the loop pauses by itself, so where an episode ends does not depend on
+when a PAUSE lands), PAUSE finishes the current tick and stops. Requests
 are executed on the loop's own thread between ticks, because the renderer's GL context
 belongs to the thread that created it.
 """
@@ -25,6 +26,7 @@ from services.core.bus import Bus
 from services.core.clock import Rate, now_ns
 from services.core.rig import load_rig
 from services.core.runtime import serve
+from services.core.success import SuccessWatch
 from services.core.validation import Invalid, check_sim_request, decode_strict
 from services.pb.common_pb2 import Header
 from services.pb.episode_pb2 import SimCommand, SimControlReply, SimControlRequest
@@ -78,7 +80,10 @@ class SimService:
             observers=[self._observe],
         )
         self.running = False
-        self.max_ticks = 0  # set by RUN: the loop pauses itself at this tick count (0: no limit)
+        # Set by RUN, cleared by RESET: the loop pauses itself at this tick count (0: no limit) or once
+        # the task's success has held for the watch's settle ticks (None: it runs on).
+        self.max_ticks = 0
+        self.success: SuccessWatch | None = None
         self._jobs: queue.Queue[tuple[SimControlRequest, Future]] = queue.Queue()
         self._stop = threading.Event()
         self._calib_thread = threading.Thread(target=self._calibration_loop, name="calibration", daemon=True)
@@ -104,7 +109,10 @@ class SimService:
     def _observe(self, tick: int, stamp_ns: int) -> None:
         self.cameras.publish_frames(self.camera.grab(stamp_ns))
         self._task_seq += 1
-        self._task_pub.put(task_state_msg(self.world, tick, stamp_ns, self._task_seq, self.seed, self.loop.episode_id))
+        msg = task_state_msg(self.world, tick, stamp_ns, self._task_seq, self.seed, self.loop.episode_id)
+        if self.success is not None:
+            self.success.update(tick, msg.success)
+        self._task_pub.put(msg)
 
     # -- episode control ----------------------------------------------------------------
     def _on_control(self, payload: bytes) -> bytes:
@@ -131,6 +139,7 @@ class SimService:
             if task != self.world.task:
                 self._load(task)
             self.running = False
+            self.max_ticks, self.success = 0, None
             self.world.reset(int(req.seed))
             self.seed = int(req.seed)
             self.loop.begin_episode(req.episode_id)
@@ -138,16 +147,19 @@ class SimService:
             log.info("reset task=%s seed=%d episode=%s", task, req.seed, req.episode_id)
             return SimControlReply(ok=True, ticks=0, success=bool(self.world.success()), lockstep=not self.cfg.realtime)
         if req.command == SimCommand.SIM_COMMAND_RUN:
-            self.max_ticks = int(req.max_ticks)
-            self.running = not self._at_limit()
+            if req.HasField("max_ticks"):
+                self.max_ticks = int(req.max_ticks)
+            if req.HasField("settle_ticks") and (self.success is None or self.success.settle_ticks != req.settle_ticks):
+                self.success = SuccessWatch(req.settle_ticks)  # watches from the next tick on
+            self.running = not self._done()
             return SimControlReply(ok=True, ticks=self.loop.tick)
         if req.command == SimCommand.SIM_COMMAND_PAUSE:
             self.running = False
             return SimControlReply(ok=True, ticks=self.loop.tick, success=bool(self.world.success()))
         return SimControlReply(ok=False, error=f"unknown sim command {req.command}")
 
-    def _at_limit(self) -> bool:
-        return 0 < self.max_ticks <= self.loop.tick
+    def _done(self) -> bool:
+        return 0 < self.max_ticks <= self.loop.tick or (self.success is not None and self.success.held)
 
     def _load(self, task: str) -> None:
         """Swap in a world for another task (the renderer must be created on this thread)."""
@@ -182,9 +194,10 @@ class SimService:
                 rate.reset()
                 was_running = True
             self.loop.step()
-            if self._at_limit():  # the episode's last tick is complete: no next observation
+            if self._done():  # the episode's last tick is complete: no next observation
                 self.running = False
-                log.info("episode %s: paused at its limit of %d ticks", self.loop.episode_id, self.max_ticks)
+                why = "its success held" if self.success is not None and self.success.held else "its tick limit"
+                log.info("episode %s: paused after %d ticks at %s", self.loop.episode_id, self.loop.tick, why)
                 continue
             if self.cfg.realtime:
                 rate.sleep()

@@ -47,7 +47,7 @@ from services.experiment.report import write_plot, write_table
 ROOT = Path(__file__).resolve().parents[2]
 EXPERIMENTS = ROOT / "experiments"
 VERSION = 1  # bump when a stage's output changes meaning: every cache key changes with it
-# What an evaluation counts as a success (services.session.session.SuccessWatch); a new rule
+# What an evaluation counts as a success (services.core.success.SuccessWatch); a new rule
 # evaluates again without training again.
 SUCCESS_RULE = "held settle_ticks, then kept"
 

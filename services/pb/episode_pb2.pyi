@@ -149,18 +149,20 @@ class EpisodeReply(_message.Message):
     def __init__(self, ok: _Optional[bool] = ..., error: _Optional[str] = ..., recording: _Optional[bool] = ..., meta: _Optional[_Union[EpisodeMeta, _Mapping]] = ...) -> None: ...
 
 class SimControlRequest(_message.Message):
-    __slots__ = ("command", "task", "seed", "episode_id", "max_ticks")
+    __slots__ = ("command", "task", "seed", "episode_id", "max_ticks", "settle_ticks")
     COMMAND_FIELD_NUMBER: _ClassVar[int]
     TASK_FIELD_NUMBER: _ClassVar[int]
     SEED_FIELD_NUMBER: _ClassVar[int]
     EPISODE_ID_FIELD_NUMBER: _ClassVar[int]
     MAX_TICKS_FIELD_NUMBER: _ClassVar[int]
+    SETTLE_TICKS_FIELD_NUMBER: _ClassVar[int]
     command: SimCommand
     task: str
     seed: int
     episode_id: str
     max_ticks: int
-    def __init__(self, command: _Optional[_Union[SimCommand, str]] = ..., task: _Optional[str] = ..., seed: _Optional[int] = ..., episode_id: _Optional[str] = ..., max_ticks: _Optional[int] = ...) -> None: ...
+    settle_ticks: int
+    def __init__(self, command: _Optional[_Union[SimCommand, str]] = ..., task: _Optional[str] = ..., seed: _Optional[int] = ..., episode_id: _Optional[str] = ..., max_ticks: _Optional[int] = ..., settle_ticks: _Optional[int] = ...) -> None: ...
 
 class SimControlReply(_message.Message):
     __slots__ = ("ok", "error", "ticks", "success", "lockstep")

@@ -1,12 +1,12 @@
 """The collection session: drives sim, teleop and recorder through N successful episodes.
 
-Per attempt: sim RESET (task, seed) -> recorder START -> sim RUN (which pauses by itself at the
-tick limit) -> watch the task state until success has held for ``settle_ticks`` or the tick
-limit -> sim PAUSE (the sim completes its tick,
-so observations == applied actions) -> recorder STOP with the tick count on success, DISCARD on
-an expert failure (reported; the next seed is tried). Everything goes over Zenoh queries; a
-service that disappears mid-episode stops the session with a clear error, and the partial
-episode is kept, closed as failed and flagged, never deleted.
+Per attempt: sim RESET (task, seed) -> recorder START -> sim RUN, which pauses by itself at the
+tick limit or once success has held for ``settle_ticks`` (the session's rule, so an episode's end
+does not depend on when a request lands) -> watch the task state until the same -> sim PAUSE
+(answers the tick count; observations == applied actions) -> recorder STOP with the tick count
+on success, DISCARD on an expert failure (reported; the next seed is tried). Everything goes over
+Zenoh queries; a service that disappears mid-episode stops the session with a clear error, and
+the partial episode is kept, closed as failed and flagged, never deleted.
 """
 
 from __future__ import annotations
@@ -23,6 +23,7 @@ from services.core import topics
 from services.core.bus import Bus, Received
 from services.core.config import ConfigError
 from services.core.rig import load_rig
+from services.core.success import SuccessWatch
 from services.pb.episode_pb2 import (
     EpisodeCommand,
     EpisodeMeta,
@@ -36,32 +37,6 @@ from services.pb.sensors_pb2 import TaskState
 from services.session.config import SessionConfig
 
 log = logging.getLogger(__name__)
-
-
-class SuccessWatch:
-    """An episode's success as the session judges it, from the task state of every tick.
-
-    Success is the task's condition holding for ``settle_ticks`` consecutive ticks (so demos end
-    at rest); once reached it stays reached, as in robomimic's rollouts, which stop at the first
-    success. A lift whose cube slips a tick after that is a success, not a failure judged by the
-    state at the moment the pause lands.
-    """
-
-    def __init__(self, settle_ticks: int):
-        self.settle_ticks = settle_ticks
-        self.tick = -1  # the last tick seen
-        self.since: int | None = None  # first tick of the current run of successful ticks
-        self.held = False
-
-    def update(self, tick: int, success: bool) -> None:
-        self.tick = tick
-        if not success:
-            self.since = None
-            return
-        if self.since is None:
-            self.since = tick
-        if tick - self.since >= self.settle_ticks:
-            self.held = True
 
 
 class SessionError(RuntimeError):
@@ -198,9 +173,9 @@ class Session:
             lockstep=reset.lockstep,
         )
         try:
-            # The sim stops itself at the limit: a PAUSE after the last tick would land a tick or
-            # two late on a busy machine, and a limit must hold exactly.
-            self._sim(SimCommand.SIM_COMMAND_RUN, max_ticks=self.cfg.tick_limit())
+            # The sim stops itself at the limit or once success has held: a PAUSE after that tick
+            # lands a tick or two late on a busy machine, and episodes must not depend on the load.
+            self._sim(SimCommand.SIM_COMMAND_RUN, max_ticks=self.cfg.tick_limit(), settle_ticks=self.cfg.settle_ticks)
             self._wait_done(self.cfg.tick_limit())
             paused = self._sim(SimCommand.SIM_COMMAND_PAUSE)
         except BaseException as exc:
@@ -236,7 +211,7 @@ class Session:
         (first renders and JPEG encodes, zenoh routes, the expert's first call)."""
         self._watch("warmup")
         self._sim(SimCommand.SIM_COMMAND_RESET, task=self.cfg.task, seed=self.cfg.seed, episode_id="warmup")
-        self._sim(SimCommand.SIM_COMMAND_RUN, max_ticks=self.cfg.warmup_ticks)
+        self._sim(SimCommand.SIM_COMMAND_RUN, max_ticks=self.cfg.warmup_ticks, settle_ticks=self.cfg.settle_ticks)
         try:
             self._wait_done(self.cfg.warmup_ticks)
         finally:

@@ -10,6 +10,7 @@ from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 
 from services.core import topics
 from services.core.bus import Bus
+from services.core.success import SuccessWatch
 from services.pb.episode_pb2 import (
     EpisodeCommand,
     EpisodeReply,
@@ -48,7 +49,7 @@ def recorder(bus: Bus, command, **kw) -> EpisodeReply:
     return reply
 
 
-def start_episode(bus: Bus, episode_id: str, seed: int) -> None:
+def start_episode(bus: Bus, episode_id: str, seed: int, **run) -> None:
     """Reset the sim, open the recording, start ticking: what a session does per episode."""
     sim(bus, SimCommand.SIM_COMMAND_RESET, task="lift", seed=seed, episode_id=episode_id)
     recorder(
@@ -60,7 +61,7 @@ def start_episode(bus: Bus, episode_id: str, seed: int) -> None:
         rig="three15",
         control_hz=20,
     )
-    sim(bus, SimCommand.SIM_COMMAND_RUN)
+    sim(bus, SimCommand.SIM_COMMAND_RUN, **run)
 
 
 def wait_for_tick(bus: Bus, episode_id: str, tick: int, until_success: bool = False) -> None:
@@ -159,3 +160,33 @@ def test_a_run_with_a_tick_limit_stops_the_sim_exactly_there(stack):
     ep = read_episode(meta.path)
     assert len(ep.messages("/robot/state")) == len(ep.messages("/robot/applied")) == len(ep.messages("/sim/task")) == 6
     assert not any(r.msg.stale for r in ep.messages("/robot/applied")) and list(meta.flags) == []
+
+
+def test_a_run_with_settle_ticks_stops_the_sim_once_success_has_held(stack):
+    """The session's success rule applied by the sim itself: a demo ends at the same tick however
+    late the session's PAUSE comes, and a RUN with no limits keeps the ones the episode has."""
+    with Bus(stack.bus_config()) as bus:
+        bus.wait_alive(["sim", "teleop", "recorder"], timeout=60)
+        seen: list[tuple[int, bool]] = []
+
+        def on_task(msg: TaskState, _rx) -> None:
+            if msg.episode_id == "settle":
+                seen.append((msg.tick, msg.success))
+
+        bus.subscribe(topics.TASK_STATE, on_task)
+        start_episode(bus, "settle", seed=4, max_ticks=200, settle_ticks=3)
+        watch = SuccessWatch(3)
+        deadline = time.monotonic() + 120
+        while not watch.held and time.monotonic() < deadline:
+            for tick, ok in seen[watch.tick + 1 :]:
+                watch.update(tick, ok)
+            time.sleep(0.01)
+        assert watch.held, f"the expert did not succeed: {seen[-5:]}"
+        time.sleep(1.0)  # in lockstep the sim would tick on meanwhile
+        assert sim(bus, SimCommand.SIM_COMMAND_RUN).ticks == watch.tick + 1  # done: stays paused
+        paused = sim(bus, SimCommand.SIM_COMMAND_PAUSE)
+        meta = recorder(
+            bus, EpisodeCommand.EPISODE_COMMAND_STOP, episode_id="settle", success=True, ticks=paused.ticks
+        ).meta
+    assert watch.tick == watch.since + 3 and paused.ticks == watch.tick + 1 == len(seen)  # not one tick more
+    assert paused.success and meta.ticks == paused.ticks and list(meta.flags) == []

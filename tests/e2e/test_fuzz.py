@@ -140,7 +140,7 @@ def test_fuzzing_every_topic_during_a_recording(tmp_path):
                 raw = bus.query(key, payload, timeout=10)
                 reply = (EpisodeReply if key == topics.EPISODE_CONTROL else SimControlReply).FromString(raw)
                 control_replies.append(reply.ok)
-            sim(SimCommand.SIM_COMMAND_RUN, max_ticks=cfg.tick_limit())  # the session's limit stays
+            sim(SimCommand.SIM_COMMAND_RUN)  # with the limits the session's RUN set
             fuzzed.append(msg.tick)
 
         def fuzz() -> None:  # its own thread: a zenoh callback must not publish bursts or query

@@ -6,7 +6,7 @@ the session used to record as a failure."""
 
 from __future__ import annotations
 
-from services.session.session import SuccessWatch
+from services.core.success import SuccessWatch
 
 
 def feed(watch: SuccessWatch, flags: list[bool]) -> list[bool]:
