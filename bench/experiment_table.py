@@ -30,13 +30,10 @@ def main() -> None:
     if not path.is_file():
         raise SystemExit(f"error: {path} does not exist (run viewscale experiment first)")
 
-    from services.experiment.report import stage_wall_s
+    from services.experiment.report import command_line, stage_wall_s
 
     res = json.loads(path.read_text())
-    q = str(res["question"]).lower()
-    command = f"viewscale experiment {q} --task {res['task']} --scale {res['scale']}" + "".join(
-        f" --only {o}" for o in res.get("only") or []
-    )
+    command = command_line(res)
     train_s, eval_s = stage_wall_s(res["cells"])
     cells = [
         {

@@ -36,6 +36,15 @@ def describe_only(only: list[str]) -> str:
     return " and ".join(f"{axis}={' or '.join(values)}" for axis, values in axes.items())
 
 
+def command_line(results: dict[str, Any]) -> str:
+    """The ``viewscale experiment`` command that makes ``results`` again (its cache makes it quick)."""
+    q = str(results["question"]).lower()
+    cmd = f"viewscale experiment {q} --task {results['task']} --scale {results['scale']}"
+    if results.get("seeds"):
+        cmd += " --seeds " + ",".join(str(x) for x in results["seeds"])
+    return cmd + "".join(f" --only {o}" for o in results.get("only") or [])
+
+
 def stage_wall_s(cells: list[dict[str, Any]]) -> tuple[float, float]:
     """(training s, evaluation s) the cells' stages took when they ran; a stage shared by cells counts once."""
     train: dict[str, float] = {}

@@ -189,6 +189,7 @@ class Runner:
         self.q = load_question(self.name)
         self.scale_name = scale
         self.scale = load_scale(scale)
+        self.seeds = None if seeds is None else list(seeds)  # recorded: the command that repeats the run names them
         if seeds is not None:  # training seeds other than the scale's (several per cell on a CPU, overnight)
             if not seeds or any(not isinstance(x, int) or x < 0 for x in seeds) or len(set(seeds)) != len(seeds):
                 raise ConfigError(f"seeds {seeds!r}: expected distinct non-negative integers")
@@ -440,6 +441,7 @@ class Runner:
             "scale": self.scale_name,
             "scale_settings": self.scale,
             "only": self.only,  # the cells were filtered: the table is part of the question's grid
+            "seeds": self.seeds,  # --seeds: training seeds other than the scale's (None: the scale's)
             "versions": versions(),
             "cells": rows,
             "missing": missing,  # cells of the selection not evaluated yet (--table-only)

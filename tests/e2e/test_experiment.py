@@ -73,7 +73,7 @@ def test_a_question_runs_caches_its_stages_and_resumes_after_a_kill(tmp_path):
     one = subprocess.run(experiment(root, "--only", "eval_views=F,FL,FR"), cwd=ROOT, capture_output=True, text=True)
     assert one.returncode == 0 and "[1/1]" in one.stdout and "evaluating from" not in one.stdout
     results = json.loads((root / "q5-lift-smoke" / "results.json").read_text())
-    assert results["cells"] == [cells[1]] and results["only"] == ["eval_views=F,FL,FR"]
+    assert results["cells"] == [cells[1]] and results["only"] == ["eval_views=F,FL,FR"] and results["seeds"] is None
     assert "Only the cells with eval_views=F,FL,FR" in (root / "q5-lift-smoke" / "table.md").read_text()
 
     # Q4 shares one cell with Q5 (five15 evaluated from F): --table-only tabulates it, lists the five

@@ -3,7 +3,7 @@ time the cells' stages took (a checkpoint shared by two evaluations counted once
 
 from __future__ import annotations
 
-from services.experiment.report import stage_wall_s, write_table
+from services.experiment.report import command_line, stage_wall_s, write_table
 
 
 def cell(label, views, n, seed, k, train, ev, train_s, eval_s):
@@ -60,3 +60,15 @@ def test_a_checkpoint_shared_by_evaluations_counts_once():
     a = cell("F", ["F"], 10, 0, 20, "t1", "e1", 1000.0, 100.0)
     b = cell("F", ["F"], 10, 0, 25, "t1", "e2", 1000.0, 150.0)  # same training, another evaluation
     assert stage_wall_s([a, b]) == (1000.0, 250.0)
+
+
+def test_the_command_line_repeats_the_selection_and_the_seeds():
+    res = results([])
+    assert command_line(res) == (
+        "viewscale experiment q1 --task lift --scale tiny --only space=camera --only train=F --only train=five15"
+    )
+    res["seeds"] = [0, 1, 2]
+    assert command_line(res) == (
+        "viewscale experiment q1 --task lift --scale tiny --seeds 0,1,2"
+        " --only space=camera --only train=F --only train=five15"
+    )
