@@ -176,18 +176,22 @@ class ResetReply(_message.Message):
     def __init__(self, existed: _Optional[bool] = ...) -> None: ...
 
 class DenoiseObservation(_message.Message):
-    __slots__ = ("checkpoint_sha256", "view", "frames", "state", "unconditional")
+    __slots__ = ("checkpoint_sha256", "view", "frames", "state", "unconditional", "group", "group_size")
     CHECKPOINT_SHA256_FIELD_NUMBER: _ClassVar[int]
     VIEW_FIELD_NUMBER: _ClassVar[int]
     FRAMES_FIELD_NUMBER: _ClassVar[int]
     STATE_FIELD_NUMBER: _ClassVar[int]
     UNCONDITIONAL_FIELD_NUMBER: _ClassVar[int]
+    GROUP_FIELD_NUMBER: _ClassVar[int]
+    GROUP_SIZE_FIELD_NUMBER: _ClassVar[int]
     checkpoint_sha256: str
     view: str
     frames: _common_pb2.Tensor
     state: _common_pb2.Tensor
     unconditional: bool
-    def __init__(self, checkpoint_sha256: _Optional[str] = ..., view: _Optional[str] = ..., frames: _Optional[_Union[_common_pb2.Tensor, _Mapping]] = ..., state: _Optional[_Union[_common_pb2.Tensor, _Mapping]] = ..., unconditional: _Optional[bool] = ...) -> None: ...
+    group: str
+    group_size: int
+    def __init__(self, checkpoint_sha256: _Optional[str] = ..., view: _Optional[str] = ..., frames: _Optional[_Union[_common_pb2.Tensor, _Mapping]] = ..., state: _Optional[_Union[_common_pb2.Tensor, _Mapping]] = ..., unconditional: _Optional[bool] = ..., group: _Optional[str] = ..., group_size: _Optional[int] = ...) -> None: ...
 
 class DenoiseStep(_message.Message):
     __slots__ = ("k", "x")
@@ -220,17 +224,23 @@ class WorkerInfoRequest(_message.Message):
     def __init__(self) -> None: ...
 
 class WorkerInfo(_message.Message):
-    __slots__ = ("checkpoint_sha256", "model_id", "device", "threads", "max_batch", "streams")
+    __slots__ = ("checkpoint_sha256", "model_id", "device", "threads", "max_batch", "streams", "passes", "batched_items", "max_streams")
     CHECKPOINT_SHA256_FIELD_NUMBER: _ClassVar[int]
     MODEL_ID_FIELD_NUMBER: _ClassVar[int]
     DEVICE_FIELD_NUMBER: _ClassVar[int]
     THREADS_FIELD_NUMBER: _ClassVar[int]
     MAX_BATCH_FIELD_NUMBER: _ClassVar[int]
     STREAMS_FIELD_NUMBER: _ClassVar[int]
+    PASSES_FIELD_NUMBER: _ClassVar[int]
+    BATCHED_ITEMS_FIELD_NUMBER: _ClassVar[int]
+    MAX_STREAMS_FIELD_NUMBER: _ClassVar[int]
     checkpoint_sha256: str
     model_id: str
     device: str
     threads: int
     max_batch: int
     streams: int
-    def __init__(self, checkpoint_sha256: _Optional[str] = ..., model_id: _Optional[str] = ..., device: _Optional[str] = ..., threads: _Optional[int] = ..., max_batch: _Optional[int] = ..., streams: _Optional[int] = ...) -> None: ...
+    passes: int
+    batched_items: int
+    max_streams: int
+    def __init__(self, checkpoint_sha256: _Optional[str] = ..., model_id: _Optional[str] = ..., device: _Optional[str] = ..., threads: _Optional[int] = ..., max_batch: _Optional[int] = ..., streams: _Optional[int] = ..., passes: _Optional[int] = ..., batched_items: _Optional[int] = ..., max_streams: _Optional[int] = ...) -> None: ...

@@ -29,6 +29,8 @@ class WorkerConfig(Frozen):
     device: str = "cpu"  # cpu, cuda, cuda:N
     threads: int = Field(1, ge=1)  # intra-op threads of the model (1 measured fastest per worker on 2 cores)
     max_batch: int = Field(64, ge=1)  # items at most in one forward pass
+    max_streams: int = Field(256, ge=1)  # Denoise streams at once (a thread each); more: RESOURCE_EXHAUSTED
+    group_wait_ms: float = Field(50.0, gt=0)  # longest a view waits for its request's other views here
     token: str | None = None  # bearer token callers must present (the server's)
     tls: TlsConfig = TlsConfig()  # serve over TLS
     max_message_mb: int = Field(16, ge=1)  # gRPC message size cap, both ways

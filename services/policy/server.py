@@ -26,10 +26,10 @@ from __future__ import annotations
 
 import asyncio
 import copy
-import hmac
 import logging
 import statistics
 import time
+import uuid
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -61,7 +61,13 @@ from services.policy.checkpoint import checkpoint_sha256, model_id, read_info
 from services.policy.model.diffusion import make_inference_scheduler
 from services.policy.model.policy import NoiseConfig
 from services.policy.observation import CameraSpec, InvalidRequest, Parsed, PolicySpec, model_inputs, parse
-from services.policy.worker import WORKER_SERVICE, ModelEngine, unconditional_cond
+from services.policy.worker import (
+    OPEN_METHODS,
+    WORKER_SERVICE,
+    ModelEngine,
+    bearer_matches,
+    unconditional_cond,
+)
 
 log = logging.getLogger(__name__)
 
@@ -367,11 +373,25 @@ class RemoteDenoiser:
             used.add(w.address)
             w.streams += 1
             self._streams[v] = _Stream(w, w.stub.Denoise(metadata=self.pool._metadata))
+        # the views that share a worker form a group there: one forward pass for all of them per step
+        per_worker: dict[str, list[str]] = {}
+        for v, st in self._streams.items():
+            per_worker.setdefault(st.worker.address, []).append(v)
+        group: dict[str, tuple[str, int]] = {}
+        for vs in per_worker.values():
+            gid = uuid.uuid4().hex
+            for v in vs:
+                group[v] = (gid, len(vs)) if len(vs) > 1 else ("", 0)
         reqs = {}
         for v, (frames, state) in inputs.items():
             if v in self._streams:
                 obs = policy_pb2.DenoiseObservation(
-                    checkpoint_sha256=self.pool.sha256, view=v, frames=to_tensor(frames), unconditional=unconditional
+                    checkpoint_sha256=self.pool.sha256,
+                    view=v,
+                    frames=to_tensor(frames),
+                    unconditional=unconditional,
+                    group=group[v][0],
+                    group_size=group[v][1],
                 )
                 if state.shape[-1]:
                     obs.state.CopyFrom(to_tensor(state))
@@ -398,10 +418,11 @@ class RemoteDenoiser:
         return eps, eps_u
 
     async def close(self) -> None:
+        # Cancelled rather than half-closed and awaited: the worker has nothing more to say, and
+        # waiting for the half-close to complete would put a round trip on the reply's path.
         for v in list(self._streams):
             s = self._streams.pop(v)
             s.worker.streams -= 1
-            await s.call.done_writing() if not s.call.done() else None
             s.call.cancel()
 
 
@@ -602,18 +623,13 @@ class PolicyService(policy_pb2_grpc.PolicyServicer):
 class BearerTokenInterceptor(grpc.aio.ServerInterceptor):
     """Every call but health and reflection needs ``authorization: Bearer <token>`` (constant-time compare)."""
 
-    OPEN = ("/grpc.health.v1.Health/", "/grpc.reflection.")
-
     def __init__(self, token: str):
         if not token:
             raise ValueError("empty bearer token")
         self._expected = f"Bearer {token}".encode()
 
     async def intercept_service(self, continuation, details):
-        if details.method.startswith(self.OPEN):
-            return await continuation(details)
-        got = dict(details.invocation_metadata or ()).get("authorization", "")
-        if hmac.compare_digest(got.encode(), self._expected):
+        if details.method.startswith(OPEN_METHODS) or bearer_matches(details.invocation_metadata, self._expected):
             return await continuation(details)
         handler = await continuation(details)
 

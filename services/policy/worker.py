@@ -1,26 +1,40 @@
 """Denoising workers: the model compute behind the policy server.
 
-``ModelEngine`` owns one loaded checkpoint on one device and a compute thread. Callers submit
-encodes (a view's observation -> its conditioning vector) and denoising steps (a view's noisy
-chunk at step k -> its noise prediction); the thread takes everything queued at that moment --
-never waiting for a batch to fill -- and runs it as one forward pass per kind. The in-process
-backend of the server calls it directly (all views of a request in one pass); the worker
-service puts it behind ``DenoiseWorker.Denoise``: one bidirectional stream per request and
-view, the observation first (encoded once, cached for the stream), then one message per step.
+``ModelEngine`` owns one loaded checkpoint on one device. Whatever is queued when a forward pass
+starts -- encodes (a view's observation -> its conditioning vector) and denoising steps (a view's
+noisy chunk at step k -> its noise prediction) -- is computed in that pass, one per kind; nothing
+waits for a batch to fill. It is used two ways:
+
+- ``compute_*`` in the caller's thread: the worker's stream threads. The first caller to find the
+  engine idle computes its own job and everyone else's queued so far (flat combining); the others
+  find theirs done. No other thread is woken for a step: on a 2-core machine each wake-up of an
+  idle thread costs ~0.1-0.3 ms, which is the fan-out's whole budget per step.
+- ``encode``/``step``/... returning a Future, computed on the engine's own thread (started on
+  first use): the in-process backend of the server, whose event loop must never compute.
+
+The worker service puts it behind ``DenoiseWorker.Denoise``: one bidirectional stream per request
+and view, the observation first (encoded once, cached for the stream), then one message per step.
+It is a synchronous gRPC server: each stream's messages are read, computed and answered on that
+stream's own thread (measured against a ``grpc.aio`` worker that hands each step to an engine
+thread and back: about 0.5 ms less per denoising step on loopback, bench/serving.py).
 
     python -m services.policy worker --checkpoint runs/lift --listen 127.0.0.1:0
 
-The worker announces ``ready worker <host:port>``, serves ``grpc.health.v1`` (NOT_SERVING until
-the model is loaded) and reflection, and refuses a stream whose checkpoint hash is not its own.
+The worker announces ``listening worker <host:port>`` and then ``ready worker <host:port>``,
+serves ``grpc.health.v1`` (NOT_SERVING until the model is loaded) and reflection, refuses a
+stream whose checkpoint hash is not its own, and takes at most ``max_streams`` streams at once
+(more get RESOURCE_EXHAUSTED at once: the server drops that view rather than wait).
 """
 
 from __future__ import annotations
 
 import asyncio
+import collections
+import hmac
 import logging
-import queue
 import threading
 import time
+from concurrent import futures
 from concurrent.futures import Future
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,7 +42,7 @@ from pathlib import Path
 import grpc
 import numpy as np
 import torch
-from grpc_health.v1 import health_pb2, health_pb2_grpc
+from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 from grpc_health.v1.health import aio as health_aio
 from grpc_reflection.v1alpha import reflection
 
@@ -63,18 +77,72 @@ class ModelEngine:
         self.max_batch = max_batch
         self.passes = 0  # forward passes run (steps and encodes)
         self.batched_items = 0  # items they held
-        self._jobs: queue.SimpleQueue[_Job | None] = queue.SimpleQueue()
-        self._thread = threading.Thread(target=self._run, name="model-engine", daemon=True)
-        self._thread.start()
+        # Jobs wait here until a pass takes them; nobody holds a job outside it while waiting for
+        # the pass lock, so a pass takes everything that queued while the previous one ran.
+        self._jobs: collections.deque[_Job] = collections.deque()
+        self._queued = threading.Condition()
+        self._pass = threading.Lock()  # one forward pass at a time, whoever runs it
+        self._thread: threading.Thread | None = None  # the engine's own thread, for Future callers
+        self._closing = False
+        self._configured = threading.local()
+
+    def check_observation(self, frames: np.ndarray, state: np.ndarray) -> None:
+        """ValueError naming what is wrong unless frames are (To, H, W, 3) uint8 and state (To, D) float32."""
+        c = self.policy.cfg
+        want = (c.obs_horizon, *c.image_size, 3)
+        if frames.dtype != np.uint8 or frames.shape != want:
+            raise ValueError(f"frames must be uint8 {want}, got {frames.dtype} {frames.shape}")
+        if state.shape != (c.obs_horizon, c.state_dim) or not np.isfinite(state).all():
+            raise ValueError(f"state must be finite float32 {(c.obs_horizon, c.state_dim)}, got {state.shape}")
+
+    def check_chunk(self, x: np.ndarray, k: int) -> None:
+        """ValueError unless x is a finite (Tp, Da) chunk and k a training timestep."""
+        c = self.policy.cfg
+        if x.shape != (c.pred_horizon, c.action_dim) or not np.isfinite(x).all():
+            raise ValueError(f"x must be finite float32 {(c.pred_horizon, c.action_dim)}, got {x.shape}")
+        if not 0 <= k < c.noise.num_train_timesteps:
+            raise ValueError(f"timestep {k} is outside 0..{c.noise.num_train_timesteps - 1}")
 
     @classmethod
     def open(cls, checkpoint: str | Path, device: str = "cpu", threads: int = 1, max_batch: int = 64) -> ModelEngine:
         return cls(load_policy(checkpoint, device=device), threads, max_batch)
 
-    # -- submitting (any thread) -----------------------------------------------------------
+    # -- computing in the caller's thread --------------------------------------------------
+    def _compute(self, kind: str, items: list[tuple], single: bool):
+        if getattr(self._configured, "threads", None) != self.threads:
+            # torch's intra-op thread count is per thread: a pool thread made before the model
+            # loaded (a health check's) would otherwise compute with every core
+            torch.set_num_threads(self.threads)
+            self._configured.threads = self.threads
+        job = _Job(kind, items, Future(), single)
+        self._put(job)
+        while not job.future.done():
+            with self._pass:
+                if not job.future.done():  # nobody took it into their pass: run everything queued
+                    self._run_queued()
+        return job.future.result()
+
+    def _put(self, job: _Job) -> None:
+        with self._queued:
+            self._jobs.append(job)
+            self._queued.notify()
+
+    def compute_encode(self, inputs: list[tuple[np.ndarray, np.ndarray]]) -> list[np.ndarray]:
+        """(frames (To, H, W, 3) uint8, state (To, D) float32 normalised) each -> their conds (Dc,)."""
+        return self._compute("encode", list(inputs), single=False)
+
+    def compute_steps(self, items: list[tuple[np.ndarray, np.ndarray, int]]) -> list[np.ndarray]:
+        """(cond (Dc,), x (Tp, 7) float32 in the view's frame, timestep k) each -> their eps (Tp, 7)."""
+        return self._compute("step", [(c, x, int(k)) for c, x, k in items], single=False)
+
+    # -- submitting to the engine's thread (any thread; for an event loop) -----------------
     def _submit(self, kind: str, items: list[tuple], single: bool) -> Future:
         fut: Future = Future()
-        self._jobs.put(_Job(kind, items, fut, single))
+        with self._queued:
+            if self._thread is None:
+                self._thread = threading.Thread(target=self._run, name="model-engine", daemon=True)
+                self._thread.start()
+        self._put(_Job(kind, items, fut, single))
         return fut
 
     def encode(self, frames: np.ndarray, state: np.ndarray) -> Future:
@@ -94,45 +162,50 @@ class ModelEngine:
         return self._submit("step", [(c, x, int(k)) for c, x, k in items], single=False)
 
     def close(self) -> None:
-        self._jobs.put(None)
-        self._thread.join(timeout=10)
+        with self._queued:
+            self._closing = True
+            self._queued.notify_all()
+        if self._thread is not None:
+            self._thread.join(timeout=10)
 
-    # -- the compute thread ----------------------------------------------------------------
+    # -- the passes ------------------------------------------------------------------------
     def _run(self) -> None:
         torch.set_num_threads(self.threads)
         while True:
-            job = self._jobs.get()
-            if job is None:
-                return
-            jobs, n = [job], len(job.items)
-            while n < self.max_batch:  # whatever is queued now: no waiting for more
-                try:
-                    nxt = self._jobs.get_nowait()
-                except queue.Empty:
-                    break
-                if nxt is None:
-                    self._jobs.put(None)
-                    break
-                jobs.append(nxt)
-                n += len(nxt.items)
-            for kind in ("encode", "step"):
-                batch = [j for j in jobs if j.kind == kind and j.future.set_running_or_notify_cancel()]
-                if not batch:
-                    continue
-                items = [item for j in batch for item in j.items]
-                try:
-                    results = self._encode(items) if kind == "encode" else self._step(items)
-                except Exception as exc:  # a bad batch fails its callers, never the thread
-                    log.exception("%s batch of %d failed", kind, len(items))
-                    for j in batch:
-                        j.future.set_exception(exc)
-                    continue
-                self.passes += 1
-                self.batched_items += len(items)
-                i = 0
+            with self._queued:
+                while not self._jobs and not self._closing:
+                    self._queued.wait()
+                if self._closing and not self._jobs:
+                    return
+            with self._pass:
+                self._run_queued()  # (a caller computing in its own thread may have taken them: then nothing)
+
+    def _run_queued(self) -> None:
+        """With the pass lock held: whatever is queued now (up to max_batch items), one pass per kind."""
+        jobs: list[_Job] = []
+        n = 0
+        with self._queued:  # no waiting for more
+            while self._jobs and (not jobs or n + len(self._jobs[0].items) <= self.max_batch):
+                jobs.append(self._jobs.popleft())
+                n += len(jobs[-1].items)
+        for kind in ("encode", "step"):
+            batch = [j for j in jobs if j.kind == kind and j.future.set_running_or_notify_cancel()]
+            if not batch:
+                continue
+            items = [item for j in batch for item in j.items]
+            try:
+                results = self._encode(items) if kind == "encode" else self._step(items)
+            except Exception as exc:  # a bad batch fails its callers, never the engine
+                log.exception("%s batch of %d failed", kind, len(items))
                 for j in batch:
-                    out, i = results[i : i + len(j.items)], i + len(j.items)
-                    j.future.set_result(out[0] if j.single else out)
+                    j.future.set_exception(exc)
+                continue
+            self.passes += 1
+            self.batched_items += len(items)
+            i = 0
+            for j in batch:
+                out, i = results[i : i + len(j.items)], i + len(j.items)
+                j.future.set_result(out[0] if j.single else out)
 
     @torch.no_grad()
     def _encode(self, items: list[tuple]) -> list[np.ndarray]:
@@ -159,20 +232,126 @@ def unconditional_cond(cond: np.ndarray) -> np.ndarray:
     return np.zeros_like(cond)
 
 
+class _Batch:
+    def __init__(self) -> None:
+        self.items: list[list[tuple]] = []  # each member's inputs
+        self.taken = False  # a member is computing it
+        self.results: list[list[np.ndarray]] | None = None
+        self.error: BaseException | None = None
+
+
+class ViewGroup:
+    """The views of one request on this worker (streams sharing ``DenoiseObservation.group``).
+
+    Each of their encodes, and each of their denoising steps, is computed in one forward pass: the
+    member whose input completes the set computes it for all, the others wait for their share. The
+    set for a step is the members whose streams are still open (a view the server dropped leaves
+    the group when its stream ends); for the encode it is the group's size. The wait is bounded by
+    ``wait_s``: past it the members that are there are computed without the rest.
+    """
+
+    def __init__(self, size: int, wait_s: float):
+        self.size = size
+        self.wait_s = wait_s
+        self.joined = 0
+        self.live = 0  # joined and still open
+        self._cond = threading.Condition()
+        self._pending: dict[object, _Batch] = {}
+
+    def join(self) -> None:
+        with self._cond:
+            self.joined += 1
+            self.live += 1
+
+    def leave(self) -> None:
+        with self._cond:
+            self.live -= 1
+            self._cond.notify_all()  # a step waiting for this member can go now
+
+    def encode(self, items: list[tuple], compute) -> list[np.ndarray]:
+        """This member's observation, encoded in one pass with every member's (the group's size)."""
+        return self._together("encode", items, lambda: self.size, compute)
+
+    def step(self, k: int, items: list[tuple], compute) -> list[np.ndarray]:
+        """This member's step k, in one pass with the step k of every member still open."""
+        return self._together(("step", k), items, lambda: self.live, compute)
+
+    def _together(self, key, items: list[tuple], expected, compute) -> list[np.ndarray]:
+        """This member's ``items`` computed in one ``compute`` call with the other members' for ``key``."""
+        with self._cond:
+            batch = self._pending.setdefault(key, _Batch())
+            i = len(batch.items)
+            batch.items.append(items)
+            end = time.monotonic() + self.wait_s
+            while not batch.taken and len(batch.items) < expected():
+                left = end - time.monotonic()
+                if left <= 0:
+                    log.warning(
+                        "group %s: computed %d of %d views after waiting %.0f ms",
+                        key,
+                        len(batch.items),
+                        expected(),
+                        self.wait_s * 1e3,
+                    )
+                    break
+                self._cond.wait(left)
+            lead = not batch.taken
+            if lead:
+                batch.taken = True
+                del self._pending[key]
+        if lead:
+            try:
+                flat = compute([it for member in batch.items for it in member])
+                out, j = [], 0
+                for member in batch.items:
+                    out.append(flat[j : j + len(member)])
+                    j += len(member)
+                batch.results = out
+            except BaseException as exc:  # every member gets the failure
+                batch.error = exc
+            with self._cond:
+                self._cond.notify_all()
+        else:
+            with self._cond:
+                while batch.results is None and batch.error is None:
+                    self._cond.wait()
+        if batch.error is not None:
+            raise batch.error
+        return batch.results[i]
+
+
 class DenoiseWorkerService(policy_pb2_grpc.DenoiseWorkerServicer):
-    """``DenoiseWorker`` over a ModelEngine; every stream's compute runs on the engine's thread."""
+    """``DenoiseWorker`` over a ModelEngine, on a synchronous gRPC server: every stream computes on its own thread."""
 
-    def __init__(self, engine: ModelEngine | None = None):
+    def __init__(self, engine: ModelEngine | None = None, max_streams: int = 256, group_wait_s: float = 0.05):
         self.engine = engine  # None while the model loads: calls are UNAVAILABLE (health says NOT_SERVING)
+        self.max_streams = max_streams
+        self.group_wait_s = group_wait_s
         self.streams = 0  # Denoise streams opened so far
+        self._count = threading.Lock()
+        self._groups: dict[str, ViewGroup] = {}
 
-    async def _ready(self, context) -> ModelEngine:
+    def _join(self, group: str, size: int) -> ViewGroup:
+        with self._count:
+            g = self._groups.get(group)
+            if g is None:
+                g = self._groups[group] = ViewGroup(max(size, 1), self.group_wait_s)
+            g.join()
+            return g
+
+    def _leave(self, group: str, g: ViewGroup) -> None:
+        g.leave()
+        with self._count:
+            if g.live <= 0 and self._groups.get(group) is g:
+                del self._groups[group]
+
+    def _ready(self, context) -> ModelEngine:
         if self.engine is None:
-            await context.abort(grpc.StatusCode.UNAVAILABLE, "the model is still loading (health: NOT_SERVING)")
+            context.abort(grpc.StatusCode.UNAVAILABLE, "the model is still loading (health: NOT_SERVING)")
         return self.engine
 
-    async def GetWorkerInfo(self, request, context) -> policy_pb2.WorkerInfo:
-        e = await self._ready(context)
+    def GetWorkerInfo(self, request, context) -> policy_pb2.WorkerInfo:
+        e = self._ready(context)
         return policy_pb2.WorkerInfo(
             checkpoint_sha256=e.sha256,
             model_id=e.model_id,
@@ -180,71 +359,123 @@ class DenoiseWorkerService(policy_pb2_grpc.DenoiseWorkerServicer):
             threads=e.threads,
             max_batch=e.max_batch,
             streams=self.streams,
+            passes=e.passes,
+            batched_items=e.batched_items,
+            max_streams=self.max_streams,
         )
 
-    async def Denoise(self, request_iterator, context):
-        await self._ready(context)
-        self.streams += 1
+    def Denoise(self, request_iterator, context):
+        engine = self._ready(context)
         cond = cond_u = None
         view = "?"
-        while True:
-            # context.read()/write() rather than iterating and yielding: one hop less per message
-            # through grpc.aio's async-generator adapters (measured per denoising step).
-            req = await context.read()
-            if req is grpc.aio.EOF:
-                return
-            kind = req.WhichOneof("msg")
-            if kind == "observation":
-                o = req.observation
-                view = o.view or "?"
-                if o.checkpoint_sha256 != self.engine.sha256:
-                    await context.abort(
-                        grpc.StatusCode.FAILED_PRECONDITION,
-                        f"worker holds checkpoint {self.engine.sha256[:12]}, the server "
-                        f"{o.checkpoint_sha256[:12] or '(none)'}: start both from the same checkpoint",
-                    )
-                try:
-                    frames = from_tensor(o.frames)
-                    state = from_tensor(o.state) if o.state.shape else np.zeros((frames.shape[0], 0), np.float32)
-                except ValueError as exc:
-                    await context.abort(grpc.StatusCode.INVALID_ARGUMENT, f"observation of {view}: {exc}")
-                cond = await asyncio.wrap_future(self.engine.encode(frames, state.astype(np.float32)))
-                cond_u = unconditional_cond(cond) if o.unconditional else None
-                await context.write(policy_pb2.DenoiseReply())
-            elif kind == "step":
-                if cond is None:
-                    await context.abort(grpc.StatusCode.FAILED_PRECONDITION, "a step came before the observation")
-                try:
-                    x = from_tensor(req.step.x).astype(np.float32)
-                except ValueError as exc:
-                    await context.abort(grpc.StatusCode.INVALID_ARGUMENT, f"step of {view}: {exc}")
-                t0 = time.perf_counter()
-                conds = [cond] if cond_u is None else [cond, cond_u]  # with its unconditional twin: one pass
-                eps = await asyncio.wrap_future(self.engine.step_many([(c, x, req.step.k) for c in conds]))
-                reply = policy_pb2.DenoiseReply(eps=to_tensor(eps[0]), compute_ms=(time.perf_counter() - t0) * 1e3)
-                if cond_u is not None:
-                    reply.eps_uncond.CopyFrom(to_tensor(eps[1]))
-                await context.write(reply)
-            else:
-                await context.abort(grpc.StatusCode.INVALID_ARGUMENT, "empty DenoiseRequest")
+        group: ViewGroup | None = None
+        group_id = ""
+        try:
+            for req in request_iterator:
+                kind = req.WhichOneof("msg")
+                if kind == "observation":
+                    o = req.observation
+                    view = o.view or "?"
+                    if o.checkpoint_sha256 != engine.sha256:
+                        context.abort(
+                            grpc.StatusCode.FAILED_PRECONDITION,
+                            f"worker holds checkpoint {engine.sha256[:12]}, the server "
+                            f"{o.checkpoint_sha256[:12] or '(none)'}: start both from the same checkpoint",
+                        )
+                    try:
+                        frames = from_tensor(o.frames)
+                        state = from_tensor(o.state) if o.state.shape else np.zeros((frames.shape[0], 0), np.float32)
+                        state = state.astype(np.float32)
+                        engine.check_observation(frames, state)  # before any torch call
+                    except ValueError as exc:
+                        context.abort(grpc.StatusCode.INVALID_ARGUMENT, f"observation of {view}: {exc}")
+                    with self._count:
+                        self.streams += 1  # a request's view (a stream opened ahead counts once used)
+                    t0 = time.perf_counter()
+                    if o.group and group is None:
+                        group_id, group = o.group, self._join(o.group, o.group_size)
+                    if group is not None:
+                        cond = group.encode([(frames, state)], engine.compute_encode)[0]
+                    else:
+                        cond = engine.compute_encode([(frames, state)])[0]
+                    cond_u = unconditional_cond(cond) if o.unconditional else None
+                    yield policy_pb2.DenoiseReply(compute_ms=(time.perf_counter() - t0) * 1e3)
+                elif kind == "step":
+                    if cond is None:
+                        context.abort(grpc.StatusCode.FAILED_PRECONDITION, "a step came before the observation")
+                    t0 = time.perf_counter()
+                    try:
+                        x = from_tensor(req.step.x).astype(np.float32)
+                        engine.check_chunk(x, req.step.k)
+                    except ValueError as exc:
+                        context.abort(grpc.StatusCode.INVALID_ARGUMENT, f"step of {view}: {exc}")
+                    conds = [cond] if cond_u is None else [cond, cond_u]  # with its unconditional twin: one pass
+                    items = [(c, x, req.step.k) for c in conds]
+                    if group is not None:
+                        eps = group.step(req.step.k, items, engine.compute_steps)
+                    else:
+                        eps = engine.compute_steps(items)
+                    reply = policy_pb2.DenoiseReply(eps=to_tensor(eps[0]), compute_ms=(time.perf_counter() - t0) * 1e3)
+                    if cond_u is not None:
+                        reply.eps_uncond.CopyFrom(to_tensor(eps[1]))
+                    yield reply
+                else:
+                    context.abort(grpc.StatusCode.INVALID_ARGUMENT, "empty DenoiseRequest")
+        except grpc.RpcError:
+            # the caller went away mid-stream (it cancels a stream it is done with): nothing to answer
+            return
+        finally:
+            if group is not None:
+                self._leave(group_id, group)
+
+
+# -- health, reflection, token (shared with the policy server) ----------------------------------
+
+OPEN_METHODS = ("/grpc.health.v1.Health/", "/grpc.reflection.")  # callable without the token (probes, tools)
+
+
+def bearer_matches(metadata, expected: bytes) -> bool:
+    """``authorization: Bearer <token>`` in the call's metadata, compared in constant time."""
+    got = dict(metadata or ()).get("authorization", "")
+    return hmac.compare_digest(got.encode(), expected)
+
+
+class WorkerTokenInterceptor(grpc.ServerInterceptor):
+    """The synchronous server's bearer-token check: every call but health and reflection."""
+
+    def __init__(self, token: str):
+        if not token:
+            raise ValueError("empty bearer token")
+        self._expected = f"Bearer {token}".encode()
+
+    def intercept_service(self, continuation, details):
+        handler = continuation(details)
+        if handler is None or details.method.startswith(OPEN_METHODS):
+            return handler
+        if bearer_matches(details.invocation_metadata, self._expected):
+            return handler
+
+        def deny(request, context):
+            context.abort(grpc.StatusCode.UNAUTHENTICATED, "missing or wrong bearer token")
+
+        if handler.unary_unary:
+            return grpc.unary_unary_rpc_method_handler(deny, handler.request_deserializer, handler.response_serializer)
+        return grpc.stream_stream_rpc_method_handler(deny, handler.request_deserializer, handler.response_serializer)
 
 
 def add_health_and_reflection(server: grpc.aio.Server, services: list[str]) -> health_aio.HealthServicer:
     """grpc.health.v1 (every service NOT_SERVING until the caller says otherwise) and reflection."""
-    health = health_aio.HealthServicer()
-    health_pb2_grpc.add_HealthServicer_to_server(health, server)
+    health_servicer = health_aio.HealthServicer()
+    health_pb2_grpc.add_HealthServicer_to_server(health_servicer, server)
     names = [*services, reflection.SERVICE_NAME, health_pb2.DESCRIPTOR.services_by_name["Health"].full_name]
     reflection.enable_server_reflection(names, server)
-    return health
+    return health_servicer
 
 
-async def set_serving(health: health_aio.HealthServicer, services: list[str], serving: bool) -> None:
+async def set_serving(health_servicer: health_aio.HealthServicer, services: list[str], serving: bool) -> None:
     status = health_pb2.HealthCheckResponse.SERVING if serving else health_pb2.HealthCheckResponse.NOT_SERVING
     for name in ["", *services]:
-        await health.set(name, status)
-
-
-# -- the worker process -------------------------------------------------------------------------
+        await health_servicer.set(name, status)
 
 
 def server_credentials(tls) -> grpc.ServerCredentials | None:
@@ -253,34 +484,52 @@ def server_credentials(tls) -> grpc.ServerCredentials | None:
     return grpc.ssl_server_credentials([(Path(tls.key).read_bytes(), Path(tls.cert).read_bytes())])
 
 
-async def serve_worker(cfg, stop: asyncio.Event, announce=print) -> int:
-    """Run one worker until ``stop``: listen (NOT_SERVING), load the model, SERVING."""
-    from services.policy.server import BearerTokenInterceptor
+# -- the worker process -------------------------------------------------------------------------
 
-    interceptors = [BearerTokenInterceptor(cfg.token)] if cfg.token else []
+
+async def serve_worker(cfg, stop: asyncio.Event, announce=print) -> int:
+    """Run one worker until ``stop``: listen (NOT_SERVING), load the model, SERVING.
+
+    The gRPC server is the synchronous one (its own threads: a thread per open stream); this
+    coroutine only loads the model off the loop and waits for the stop signal."""
     size = cfg.max_message_mb << 20
-    server = grpc.aio.server(
-        interceptors=interceptors,
+    server = grpc.server(
+        futures.ThreadPoolExecutor(max_workers=cfg.max_streams, thread_name_prefix="denoise"),
+        interceptors=[WorkerTokenInterceptor(cfg.token)] if cfg.token else [],
         options=[("grpc.max_receive_message_length", size), ("grpc.max_send_message_length", size)],
+        maximum_concurrent_rpcs=cfg.max_streams,
     )
-    service = DenoiseWorkerService()
+    service = DenoiseWorkerService(max_streams=cfg.max_streams, group_wait_s=cfg.group_wait_ms / 1e3)
     policy_pb2_grpc.add_DenoiseWorkerServicer_to_server(service, server)
-    health = add_health_and_reflection(server, [WORKER_SERVICE])
-    await set_serving(health, [WORKER_SERVICE], False)
+    health_servicer = health.HealthServicer()
+    health_pb2_grpc.add_HealthServicer_to_server(health_servicer, server)
+    names = [WORKER_SERVICE, reflection.SERVICE_NAME, health_pb2.DESCRIPTOR.services_by_name["Health"].full_name]
+    reflection.enable_server_reflection(names, server)
+
+    def serving(on: bool) -> None:
+        status = health_pb2.HealthCheckResponse.SERVING if on else health_pb2.HealthCheckResponse.NOT_SERVING
+        for name in ("", WORKER_SERVICE):
+            health_servicer.set(name, status)
+
+    serving(False)
     creds = server_credentials(cfg.tls)
     port = server.add_secure_port(cfg.listen, creds) if creds else server.add_insecure_port(cfg.listen)
     host = cfg.listen.rsplit(":", 1)[0]
     address = f"{host}:{port}"
-    await server.start()
+    server.start()
     announce(f"listening worker {address}")
     loop = asyncio.get_running_loop()
-    engine = await loop.run_in_executor(None, ModelEngine.open, cfg.checkpoint, cfg.device, cfg.threads, cfg.max_batch)
-    service.engine = engine
-    await set_serving(health, [WORKER_SERVICE], True)
-    log.info("worker %s serving %s on %s (%d threads)", address, engine.model_id, engine.device, engine.threads)
-    announce(f"ready worker {address}")
-    await stop.wait()
-    await set_serving(health, [WORKER_SERVICE], False)
-    await server.stop(grace=1.0)
+    try:
+        engine = await loop.run_in_executor(
+            None, ModelEngine.open, cfg.checkpoint, cfg.device, cfg.threads, cfg.max_batch
+        )
+        service.engine = engine
+        serving(True)
+        log.info("worker %s serving %s on %s (%d threads)", address, engine.model_id, engine.device, engine.threads)
+        announce(f"ready worker {address}")
+        await stop.wait()
+        serving(False)
+    finally:
+        await loop.run_in_executor(None, lambda: server.stop(grace=1.0).wait())
     engine.close()
     return 0

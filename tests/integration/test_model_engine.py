@@ -3,6 +3,9 @@ in one forward pass, nothing waits for a batch to fill, and batching does not ch
 
 from __future__ import annotations
 
+import threading
+import time
+
 import numpy as np
 import pytest
 import torch
@@ -56,3 +59,40 @@ def test_work_queued_while_the_engine_computes_is_merged_and_a_lone_job_does_not
     passes = engine.passes
     assert engine.step(cond, np.zeros((16, 7), np.float32), 3).result(timeout=5).shape == (16, 7)
     assert engine.passes == passes + 1  # alone, computed at once
+
+
+def test_callers_computing_in_their_own_threads_share_passes_and_get_the_engine_numbers(engine):
+    """The worker's path: each stream's thread computes, whatever is queued meanwhile joins its pass."""
+    frames, states = _inputs(engine, 64, seed=2)
+    cond = engine.encode(frames[0], states[0]).result(timeout=30)
+    x = np.random.default_rng(3).standard_normal((16, 7)).astype(np.float32)
+    alone = engine.step(cond, x, 5).result(timeout=30)
+    torch.set_num_threads(2)  # a thread made before the model loaded (a health check's) computes with 2
+    got, threads_seen = {}, {}
+
+    def caller(i: int) -> None:
+        got[i] = engine.compute_steps([(cond, x, 5)])[0]
+        threads_seen[i] = torch.get_num_threads()
+
+    passes, items = engine.passes, engine.batched_items
+    busy = threading.Thread(target=lambda: got.setdefault("busy", engine.compute_encode(list(zip(frames, states)))))
+    busy.start()
+    deadline = time.monotonic() + 30
+    while not engine._pass.locked():  # the long encode has the pass ...
+        assert time.monotonic() < deadline
+        time.sleep(0.001)
+    callers = [threading.Thread(target=caller, args=(i,)) for i in range(4)]
+    for t in callers:
+        t.start()
+    while len(engine._jobs) < 4:  # ... and the four callers queue behind it
+        assert time.monotonic() < deadline
+        time.sleep(0.001)
+    assert busy.is_alive(), "the encode ended before the callers queued: the test proves nothing"
+    for t in [busy, *callers]:
+        t.join(timeout=60)
+    assert len(got["busy"]) == 64
+    assert engine.passes - passes == 2 and engine.batched_items - items == 64 + 4  # the four: one pass
+    for i in range(4):
+        np.testing.assert_allclose(got[i], alone, rtol=0, atol=1e-5)
+    assert set(threads_seen.values()) == {engine.threads}  # each caller computed with the engine's count
+    torch.set_num_threads(1)
