@@ -22,9 +22,9 @@ from services.policy.checkpoint import checkpoint_sha256, read_info
 ROOT = Path(__file__).resolve().parents[2]
 
 
-def start_worker(ckpt: Path, env=None) -> tuple[subprocess.Popen, str]:
+def start_worker(ckpt: Path, *args: str, env=None) -> tuple[subprocess.Popen, str]:
     proc = subprocess.Popen(
-        [sys.executable, "-m", "services.policy", "worker", "--checkpoint", str(ckpt)],
+        [sys.executable, "-m", "services.policy", "worker", "--checkpoint", str(ckpt), *args],
         cwd=ROOT,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
@@ -48,7 +48,9 @@ def stop(proc: subprocess.Popen) -> None:
 
 @pytest.fixture(scope="module")
 def worker(tiny_checkpoint):
-    proc, addr = start_worker(tiny_checkpoint)
+    # a group waits as long as it takes for its views (on a loaded machine a view's thread can be held
+    # back past the default 50 ms): the pass counts the tests check are then exact
+    proc, addr = start_worker(tiny_checkpoint, "--set", "group_wait_ms=60000")
     yield addr
     stop(proc)
 

@@ -68,8 +68,8 @@ def _start(args: list[str], kind: str, env=None) -> tuple[subprocess.Popen, str]
     raise AssertionError(f"{kind} did not start: {proc.stderr.read()[-3000:]}")
 
 
-def start_worker(ckpt: Path, port: int = 0) -> tuple[subprocess.Popen, str]:
-    return _start(["worker", "--checkpoint", str(ckpt), "--listen", f"127.0.0.1:{port}"], "worker")
+def start_worker(ckpt: Path, port: int = 0, *args: str) -> tuple[subprocess.Popen, str]:
+    return _start(["worker", "--checkpoint", str(ckpt), "--listen", f"127.0.0.1:{port}", *args], "worker")
 
 
 def start_server(ckpt: Path, *args: str, env=None) -> tuple[subprocess.Popen, str]:
@@ -125,20 +125,30 @@ def test_one_view_through_the_server_is_the_in_process_sampler(checkpoint, obser
 
 
 def test_fan_out_to_workers_gives_the_in_process_actions(checkpoint, observations):
+    # the grouping worker waits as long as it takes for a group's views (a loaded machine can hold a
+    # view's message back longer than the default 50 ms): the pass count below is then exact
     workers = [start_worker(checkpoint) for _ in range(3)]
+    workers.append(start_worker(checkpoint, 0, "--set", "group_wait_ms=60000"))
     servers = [
-        start_server(checkpoint, "--views", "F,FL,FR", *sum((["--worker", a] for _, a in workers), [])),
         start_server(checkpoint, "--views", "F,FL,FR", "--in-process"),
+        # a view per worker, and the three views grouped on one worker (one pass per step)
+        start_server(checkpoint, "--views", "F,FL,FR", *sum((["--worker", a] for _, a in workers[:3]), [])),
+        start_server(checkpoint, "--views", "F,FL,FR", "--worker", workers[3][1]),
     ]
     try:
         got = []
         for _, addr in servers:
             with PolicyClient(addr) as client:
                 got.append([client.get_action(f, s, seed=11 + i) for i, (f, s) in enumerate(observations[:3])])
-        for fan, local in zip(*got):
-            assert fan.views_used == local.views_used == ("F", "FL", "FR") and not fan.degraded
-            np.testing.assert_allclose(fan.actions, local.actions, rtol=0, atol=1e-6)
+        for local, *fans in zip(*got):
+            for fan in fans:
+                assert fan.views_used == local.views_used == ("F", "FL", "FR") and not fan.degraded
+                np.testing.assert_allclose(fan.actions, local.actions, rtol=0, atol=1e-6)
         assert not np.allclose(got[0][0].actions, got[0][1].actions)  # different observations, other chunks
+        with grpc.insecure_channel(workers[3][1]) as ch:
+            info = policy_pb2_grpc.DenoiseWorkerStub(ch).GetWorkerInfo(policy_pb2.WorkerInfoRequest(), timeout=10)
+        # three requests of three views: an encode and four steps each, every one a pass of three
+        assert (info.streams, info.passes, info.batched_items) == (9, 3 * 5, 3 * 5 * 3)
     finally:
         for p, _ in servers + workers:
             stop(p)
