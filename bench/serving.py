@@ -6,19 +6,26 @@
 
 Records two scripted lift episodes with the five15 rig, builds a camera-space dataset, and makes
 a checkpoint per preset (one training step: latency does not depend on the weights; DDIM 10).
-For each preset it starts two servers on loopback -- one computing every view in-process, one
-fanning out to five worker processes (one intra-op thread each) -- and then, in interleaved
-rounds so that the machine's load hits both alike, has 1, 4 or 8 client threads call GetAction
-composing the first V of F, FL, FR, FU, FD. Reports per (backend, V, clients) the client-measured
-p50/p99 latency and the server's p50 step time, and the two targets: the fan-out's extra time
-per denoising step over in-process (from the request latency, and from the server's step time
-alone, which leaves out opening and closing the streams), and V=3 composed against V=1 (both
-in-process).
+For each preset it starts servers on loopback -- computing every view in-process, or fanning out
+to worker processes (``--fanout-workers``, default 1: the same compute as in-process, one model
+with one intra-op thread, so that the difference is the fan-out alone) -- and then, in
+interleaved rounds so that the machine's load hits both alike, has 1, 4 or 8 client threads call
+GetAction composing the first V of F, FL, FR, FU, FD. Reports per (backend, V, clients) the
+client-measured p50/p99 latency and the server's p50 step time, and the two targets: the
+fan-out's extra time per denoising step over in-process (from the request latency, and from the
+server's step time alone, which leaves out opening and closing the streams), and V=3 composed
+against V=1 (both in-process).
+
+Each backend runs as ``--replicas`` separate server processes (each with its own workers), pooled:
+two processes of the same code differ by up to 0.7 ms per step on a 2-core VM (measured, A/A),
+which is as large as the effect measured.
 
 The floor under the fan-out's extra time is one gRPC round trip per step: in the same rounds the
 bench times a bare ``DenoiseWorker.Denoise`` stream to an echo process (``--echo-server``: the same
-step messages, answered at once, no model) from a ``grpc.aio`` client, as the server calls its
-workers (row ``grpc-echo``, target ``grpc_round_trip_floor_ms``).
+step messages, no model) from a ``grpc.aio`` client, as the server calls its workers: answered at
+once (row ``grpc-echo``, target ``grpc_round_trip_floor_ms``), and answered after an idle gap as
+long as a step's compute (row ``grpc-echo-idle``, target ``grpc_round_trip_after_idle_ms``, the gap
+taken off): waking an idle process costs more than a hot round trip, and every step pays it.
 """
 
 from __future__ import annotations
@@ -126,8 +133,9 @@ def run_round(addr: str, frames, states, views: list[str], clients: int, request
     return out
 
 
-async def _echo_serve() -> None:
+async def _echo_serve(gap_s: float) -> None:
     import asyncio
+    import time
 
     import grpc
 
@@ -139,9 +147,14 @@ async def _echo_serve() -> None:
                 req = await context.read()
                 if req is grpc.aio.EOF:
                     return
-                await context.write(
-                    policy_pb2.DenoiseReply(eps=req.step.x) if req.HasField("step") else policy_pb2.DenoiseReply()
-                )
+                if not req.HasField("step"):
+                    await context.write(policy_pb2.DenoiseReply())
+                    continue
+                t = time.perf_counter()
+                if gap_s:
+                    await asyncio.sleep(gap_s)  # the worker computing: this process idles meanwhile
+                # the gap as slept (a timer overshoots), so that the client can take exactly it off
+                await context.write(policy_pb2.DenoiseReply(eps=req.step.x, compute_ms=(time.perf_counter() - t) * 1e3))
 
     server = grpc.aio.server()
     policy_pb2_grpc.add_DenoiseWorkerServicer_to_server(Echo(), server)
@@ -152,7 +165,8 @@ async def _echo_serve() -> None:
 
 
 def echo_round(addr: str, n: int, tp: int = 16) -> list[float]:
-    """Round trips (ms) of ``n`` step messages of a (tp, 7) float32 chunk over one Denoise stream."""
+    """Round trips (ms) of ``n`` step messages of a (tp, 7) float32 chunk over one Denoise stream,
+    less the time the echo waited before each answer (its ``compute_ms``)."""
     import asyncio
     import time
 
@@ -170,9 +184,10 @@ def echo_round(addr: str, n: int, tp: int = 16) -> list[float]:
             for i in range(n + 1):  # the first opens the stream: not timed
                 t = time.perf_counter()
                 await call.write(policy_pb2.DenoiseRequest(step=policy_pb2.DenoiseStep(k=i, x=to_tensor(x))))
-                from_tensor((await call.read()).eps)
+                reply = await call.read()
+                from_tensor(reply.eps)
                 if i:
-                    out.append((time.perf_counter() - t) * 1e3)
+                    out.append((time.perf_counter() - t) * 1e3 - reply.compute_ms)
             await call.done_writing()
             return out
 
@@ -195,12 +210,15 @@ def main() -> None:
     ap.add_argument("--paper-clients", default="1", help="clients for paper presets")
     ap.add_argument("--size", type=int, default=84)
     ap.add_argument("--device", default="cpu")
+    ap.add_argument("--fanout-workers", type=int, default=1, help="worker processes per fan-out server")
+    ap.add_argument("--replicas", type=int, default=2, help="server processes per backend, pooled")
+    ap.add_argument("--echo-gap-ms", type=float, default=4.0, help="idle gap of the grpc-echo-idle row")
     ap.add_argument("--echo-server", action="store_true", help=argparse.SUPPRESS)  # the bench's echo process
     args = ap.parse_args()
     if args.echo_server:
         import asyncio
 
-        asyncio.run(_echo_serve())
+        asyncio.run(_echo_serve(args.echo_gap_ms / 1e3))
         return
 
     with tempfile.TemporaryDirectory(prefix="vs-serve-bench-") as tmp:
@@ -213,38 +231,40 @@ def main() -> None:
             clients_list = [int(c) for c in (args.paper_clients if paper else args.clients).split(",")]
             requests = args.paper_requests if paper else args.requests
             dev = ["--device", args.device]
-            workers = [start(["worker", "--checkpoint", str(ckpt), *dev], "worker") for _ in range(5)]
-            echo, echo_addr = start(["--echo-server"], "echo", (str(Path(__file__).resolve()),))
-            servers = {
-                "in-process": start(
-                    ["serve", "--checkpoint", str(ckpt), "--listen", "127.0.0.1:0", "--in-process", *dev], "policy"
-                ),
-                "fan-out": start(
-                    [
-                        "serve",
-                        "--checkpoint",
-                        str(ckpt),
-                        "--listen",
-                        "127.0.0.1:0",
-                        *sum((["--worker", a] for _, a in workers), []),
-                    ],
-                    "policy",
-                ),
-            }
+            bench_py = (str(Path(__file__).resolve()),)
+            echo, echo_addr = start(["--echo-server", "--echo-gap-ms", "0"], "echo", bench_py)
+            idle, idle_addr = start(["--echo-server", "--echo-gap-ms", str(args.echo_gap_ms)], "echo", bench_py)
+            procs = [echo, idle]
+            servers: dict[str, list[str]] = {"in-process": [], "fan-out": []}
+            for _ in range(args.replicas):
+                srv = ["serve", "--checkpoint", str(ckpt), "--listen", "127.0.0.1:0"]
+                proc, addr = start([*srv, "--in-process", *dev], "policy")
+                procs.append(proc)
+                servers["in-process"].append(addr)
+                wcmd = ["worker", "--checkpoint", str(ckpt), *dev]
+                workers = [start(wcmd, "worker") for _ in range(args.fanout_workers)]
+                procs += [p for p, _ in workers]
+                proc, addr = start([*srv, *sum((["--worker", a] for _, a in workers), [])], "policy")
+                procs.append(proc)
+                servers["fan-out"].append(addr)
             try:
                 results: dict[tuple, list] = {}
                 echo_ms: list[float] = []
-                for _, addr in servers.values():  # warm-up: first calls pay for allocations
-                    run_round(addr, frames, states, VIEWS, 1, 2)
+                idle_ms: list[float] = []
+                for addrs in servers.values():  # warm-up: first calls pay for allocations
+                    for addr in addrs:
+                        run_round(addr, frames, states, VIEWS, 1, 2)
                 for _ in range(args.rounds):
                     echo_ms += echo_round(echo_addr, 10 * requests)
+                    idle_ms += echo_round(idle_addr, 10 * requests)
                     for n_views in [int(v) for v in args.views.split(",")]:
                         for clients in clients_list:
-                            for name, (_, addr) in servers.items():
-                                key = (name, n_views, clients)
-                                results.setdefault(key, []).extend(
-                                    run_round(addr, frames, states, VIEWS[:n_views], clients, requests)
-                                )
+                            for replica in range(args.replicas):
+                                for name, addrs in servers.items():
+                                    key = (name, n_views, clients)
+                                    results.setdefault(key, []).extend(
+                                        run_round(addrs[replica], frames, states, VIEWS[:n_views], clients, requests)
+                                    )
                 for (name, n_views, clients), got in sorted(results.items()):
                     lat = [g[0] * 1e3 for g in got]
                     rows.append(
@@ -259,17 +279,18 @@ def main() -> None:
                             "step_p50_ms": round(statistics.median(g[1] for g in got), 3),
                         }
                     )
-                rows.append(
-                    {
-                        "preset": preset,
-                        "backend": "grpc-echo",
-                        "n": len(echo_ms),
-                        "rtt_p50_ms": round(pct(echo_ms, 0.5), 3),
-                        "rtt_p99_ms": round(pct(echo_ms, 0.99), 3),
-                    }
-                )
+                for backend, ms in (("grpc-echo", echo_ms), ("grpc-echo-idle", idle_ms)):
+                    rows.append(
+                        {
+                            "preset": preset,
+                            "backend": backend,
+                            "n": len(ms),
+                            "rtt_p50_ms": round(pct(ms, 0.5), 3),
+                            "rtt_p99_ms": round(pct(ms, 0.99), 3),
+                        }
+                    )
             finally:
-                for proc, _ in [*servers.values(), *workers, (echo, echo_addr)]:
+                for proc in procs:
                     proc.terminate()
                     proc.wait(timeout=30)
 
@@ -290,13 +311,18 @@ def main() -> None:
             if a and b:
                 targets[f"{preset}_fanout_extra_ms_per_step_V{v}"] = round((a["p50_ms"] - b["p50_ms"]) / 10, 3)
                 targets[f"{preset}_fanout_extra_step_p50_ms_V{v}"] = round(a["step_p50_ms"] - b["step_p50_ms"], 3)
-        floor = next((r for r in rows if r["preset"] == preset and r["backend"] == "grpc-echo"), None)
-        if floor:
-            targets[f"{preset}_grpc_round_trip_floor_ms"] = floor["rtt_p50_ms"]
+        for backend, target in (("grpc-echo", "round_trip_floor_ms"), ("grpc-echo-idle", "round_trip_after_idle_ms")):
+            floor = next((r for r in rows if r["preset"] == preset and r["backend"] == backend), None)
+            if floor:
+                targets[f"{preset}_grpc_{target}"] = floor["rtt_p50_ms"]
         one, three = row(preset, "in-process", 1, 1), row(preset, "in-process", 3, 1)
         if one and three:
             targets[f"{preset}_V3_over_V1_in_process"] = round(three["p50_ms"] / one["p50_ms"], 3)
-    report("serving", {"device": args.device, "ddim_steps": 10, "size": args.size, "targets": targets, "rows": rows})
+    settings = {"fanout_workers": args.fanout_workers, "replicas": args.replicas, "echo_gap_ms": args.echo_gap_ms}
+    report(
+        "serving",
+        {"device": args.device, "ddim_steps": 10, "size": args.size, **settings, "targets": targets, "rows": rows},
+    )
 
 
 if __name__ == "__main__":
