@@ -15,8 +15,8 @@ waits for a batch to fill. It is used two ways:
 The worker service puts it behind ``DenoiseWorker.Denoise``: one bidirectional stream per request
 and view, the observation first (encoded once, cached for the stream), then one message per step.
 It is a synchronous gRPC server: each stream's messages are read, computed and answered on that
-stream's own thread (measured against a ``grpc.aio`` worker that hands each step to an engine
-thread and back: about 0.5 ms less per denoising step on loopback, bench/serving.py).
+stream's own thread (side by side with a ``grpc.aio`` worker that handed each step to an engine
+thread and back: 0.2-0.3 ms less per denoising step on loopback in four runs of five, docs/serving.md).
 
     python -m services.policy worker --checkpoint runs/lift --listen 127.0.0.1:0
 
