@@ -108,13 +108,13 @@ class ModelEngine:
         return cls(load_policy(checkpoint, device=device), threads, max_batch)
 
     # -- computing in the caller's thread --------------------------------------------------
-    def _compute(self, kind: str, items: list[tuple], single: bool):
+    def _compute(self, kind: str, items: list[tuple]) -> list[np.ndarray]:
         if getattr(self._configured, "threads", None) != self.threads:
             # torch's intra-op thread count is per thread: a pool thread made before the model
             # loaded (a health check's) would otherwise compute with every core
             torch.set_num_threads(self.threads)
             self._configured.threads = self.threads
-        job = _Job(kind, items, Future(), single)
+        job = _Job(kind, items, Future())
         self._put(job)
         while not job.future.done():
             with self._pass:
@@ -129,11 +129,11 @@ class ModelEngine:
 
     def compute_encode(self, inputs: list[tuple[np.ndarray, np.ndarray]]) -> list[np.ndarray]:
         """(frames (To, H, W, 3) uint8, state (To, D) float32 normalised) each -> their conds (Dc,)."""
-        return self._compute("encode", list(inputs), single=False)
+        return self._compute("encode", list(inputs))
 
     def compute_steps(self, items: list[tuple[np.ndarray, np.ndarray, int]]) -> list[np.ndarray]:
         """(cond (Dc,), x (Tp, 7) float32 in the view's frame, timestep k) each -> their eps (Tp, 7)."""
-        return self._compute("step", [(c, x, int(k)) for c, x, k in items], single=False)
+        return self._compute("step", [(c, x, int(k)) for c, x, k in items])
 
     # -- submitting to the engine's thread (any thread; for an event loop) -----------------
     def _submit(self, kind: str, items: list[tuple], single: bool) -> Future:
@@ -253,14 +253,12 @@ class ViewGroup:
     def __init__(self, size: int, wait_s: float):
         self.size = size
         self.wait_s = wait_s
-        self.joined = 0
         self.live = 0  # joined and still open
         self._cond = threading.Condition()
         self._pending: dict[object, _Batch] = {}
 
     def join(self) -> None:
         with self._cond:
-            self.joined += 1
             self.live += 1
 
     def leave(self) -> None:
