@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import json
 import signal
 import sys
 from pathlib import Path
@@ -30,8 +31,8 @@ def _load(model, args: argparse.Namespace, flags: list[str], section: str):
         value = getattr(args, name, None)
         if value is None or value is False or value == []:
             continue
-        if isinstance(value, list):
-            value = "[" + ",".join(str(v) for v in value) + "]"
+        if isinstance(value, list):  # each item quoted: an address may hold commas (ipv4:A:P,B:P)
+            value = json.dumps([str(v) for v in value])
         overrides.append(f"{name}={value}")
     try:
         cfg = load_config(model, args.config, [*overrides, *args.set], section=section)
@@ -125,7 +126,7 @@ def add_policy_commands(subparsers: argparse._SubParsersAction) -> None:
         action="append",
         default=[],
         metavar="ADDR",
-        help="a running worker, host:port or dns:///name:port (repeatable)",
+        help="a running worker: host:port, or dns:///name:port / ipv4:A:P,B:P for every replica (repeatable)",
     )
     p.add_argument("--in-process", action="store_true", help="compute every view in this process")
     p.add_argument("--device", help="cpu, cuda or cuda:N (default cpu)")

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import asyncio
 import copy
+import ipaddress
 import logging
 import statistics
 import time
@@ -63,6 +64,7 @@ from services.policy.model.policy import NoiseConfig
 from services.policy.observation import CameraSpec, InvalidRequest, Parsed, PolicySpec, model_inputs, parse
 from services.policy.worker import (
     OPEN_METHODS,
+    REPLICA_KEY,
     WORKER_SERVICE,
     ModelEngine,
     bearer_matches,
@@ -212,6 +214,24 @@ class WorkerHandle:
     healthy: bool = False  # admitted: health SERVING and the same checkpoint
     reason: str = "not checked yet"
     streams: int = 0  # open streams (for spreading views)
+    balanced: bool = False  # gRPC may spread its streams over several replicas (may_balance)
+
+
+def may_balance(address: str) -> bool:
+    """Whether gRPC may spread the calls to ``address`` over several servers: a name that can
+    resolve to several (``dns:///name:port``, a host name) or a list (``ipv4:A:P,B:P``). An IP
+    literal or a unix socket is one server."""
+    if address.startswith(("unix:", "unix-abstract:")):
+        return False
+    if address.startswith(("ipv4:", "ipv6:")):
+        return "," in address
+    if address.startswith("dns:"):
+        return True
+    try:
+        ipaddress.ip_address(address.rsplit(":", 1)[0].strip("[]"))
+    except ValueError:
+        return True
+    return False
 
 
 class WorkerPool:
@@ -242,7 +262,8 @@ class WorkerPool:
                 if credentials
                 else grpc.aio.insecure_channel(addr, options=options)
             )
-            self.workers.append(WorkerHandle(addr, ch, policy_pb2_grpc.DenoiseWorkerStub(ch)))
+            handle = WorkerHandle(addr, ch, policy_pb2_grpc.DenoiseWorkerStub(ch), balanced=may_balance(addr))
+            self.workers.append(handle)
         self._task: asyncio.Task | None = None
         self._changed = asyncio.Event()
 
@@ -363,6 +384,16 @@ class RemoteDenoiser:
             return None
         return reply
 
+    async def _replica(self, view: str, deadline: float) -> str:
+        """The worker process that took this view's stream (its initial metadata)."""
+        try:
+            async with asyncio.timeout_at(deadline):
+                md = await self._streams[view].call.initial_metadata()
+        except (TimeoutError, grpc.aio.AioRpcError):
+            md = None
+        # not told (the stream failed: its observation will say how): a group of its own
+        return (md.get(REPLICA_KEY) if md else None) or uuid.uuid4().hex
+
     async def open(self, inputs, unconditional, deadline) -> None:
         used: set[str] = set()
         for v in inputs:
@@ -373,10 +404,15 @@ class RemoteDenoiser:
             used.add(w.address)
             w.streams += 1
             self._streams[v] = _Stream(w, w.stub.Denoise(metadata=self.pool._metadata))
-        # the views that share a worker form a group there: one forward pass for all of them per step
-        per_worker: dict[str, list[str]] = {}
+        # The views that share a worker form a group there: one forward pass for all of them per
+        # step. Behind a balanced address the streams may have reached different replicas (a
+        # replica would wait for members that went elsewhere): each stream says which replica took
+        # it, and the views are grouped by that.
+        balanced = [v for v, st in self._streams.items() if st.worker.balanced]
+        replicas = dict(zip(balanced, await asyncio.gather(*(self._replica(v, deadline) for v in balanced))))
+        per_worker: dict[tuple[str, str], list[str]] = {}
         for v, st in self._streams.items():
-            per_worker.setdefault(st.worker.address, []).append(v)
+            per_worker.setdefault((st.worker.address, replicas.get(v, "")), []).append(v)
         group: dict[str, tuple[str, int]] = {}
         for vs in per_worker.values():
             gid = uuid.uuid4().hex

@@ -32,8 +32,11 @@ import asyncio
 import collections
 import hmac
 import logging
+import os
+import socket
 import threading
 import time
+import uuid
 from concurrent import futures
 from concurrent.futures import Future
 from dataclasses import dataclass
@@ -53,6 +56,10 @@ from services.policy.checkpoint import LoadedPolicy, checkpoint_sha256, load_pol
 log = logging.getLogger(__name__)
 
 WORKER_SERVICE = "viewscale.v1.DenoiseWorker"
+# Initial metadata of every Denoise stream: which worker process took it. Behind an address that
+# gRPC balances over several replicas (a DNS name), the server learns from it which of a
+# request's views share a replica, and groups only those.
+REPLICA_KEY = "viewscale-replica"
 
 
 @dataclass
@@ -326,6 +333,7 @@ class DenoiseWorkerService(policy_pb2_grpc.DenoiseWorkerServicer):
         self.max_streams = max_streams
         self.group_wait_s = group_wait_s
         self.streams = 0  # Denoise streams opened so far
+        self.replica = f"{socket.gethostname()}/{os.getpid()}/{uuid.uuid4().hex[:8]}"
         self._count = threading.Lock()
         self._groups: dict[str, ViewGroup] = {}
 
@@ -364,6 +372,7 @@ class DenoiseWorkerService(policy_pb2_grpc.DenoiseWorkerServicer):
 
     def Denoise(self, request_iterator, context):
         engine = self._ready(context)
+        context.send_initial_metadata(((REPLICA_KEY, self.replica),))  # before the first message
         cond = cond_u = None
         view = "?"
         group: ViewGroup | None = None

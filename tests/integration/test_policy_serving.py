@@ -128,12 +128,16 @@ def test_fan_out_to_workers_gives_the_in_process_actions(checkpoint, observation
     # the grouping worker waits as long as it takes for a group's views (a loaded machine can hold a
     # view's message back longer than the default 50 ms): the pass count below is then exact
     workers = [start_worker(checkpoint) for _ in range(3)]
-    workers.append(start_worker(checkpoint, 0, "--set", "group_wait_ms=60000"))
+    workers += [start_worker(checkpoint, 0, "--set", "group_wait_ms=60000") for _ in range(3)]
+    # two replicas behind one balanced address (as a DNS name of several replicas): gRPC spreads
+    # the streams over them, and the server groups the views by the replica each stream reached
+    balanced = "ipv4:" + ",".join(a for _, a in workers[4:6])
     servers = [
         start_server(checkpoint, "--views", "F,FL,FR", "--in-process"),
         # a view per worker, and the three views grouped on one worker (one pass per step)
         start_server(checkpoint, "--views", "F,FL,FR", *sum((["--worker", a] for _, a in workers[:3]), [])),
         start_server(checkpoint, "--views", "F,FL,FR", "--worker", workers[3][1]),
+        start_server(checkpoint, "--views", "F,FL,FR", "--worker", balanced),
     ]
     try:
         got = []
@@ -149,6 +153,14 @@ def test_fan_out_to_workers_gives_the_in_process_actions(checkpoint, observation
             info = policy_pb2_grpc.DenoiseWorkerStub(ch).GetWorkerInfo(policy_pb2.WorkerInfoRequest(), timeout=10)
         # three requests of three views: an encode and four steps each, every one a pass of three
         assert (info.streams, info.passes, info.batched_items) == (9, 3 * 5, 3 * 5 * 3)
+        infos = []
+        for _, a in workers[4:6]:
+            with grpc.insecure_channel(a) as ch:
+                infos.append(
+                    policy_pb2_grpc.DenoiseWorkerStub(ch).GetWorkerInfo(policy_pb2.WorkerInfoRequest(), timeout=10)
+                )
+        # every view's encode and steps computed once, on whichever replica its stream reached
+        assert sum(i.streams for i in infos) == 9 and sum(i.batched_items for i in infos) == 3 * 5 * 3
     finally:
         for p, _ in servers + workers:
             stop(p)
