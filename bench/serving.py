@@ -3,6 +3,7 @@
     python bench/serving.py                                  # tiny: V = 1, 3, 5; 1/4/8 clients
     python bench/serving.py --presets tiny,paper --paper-requests 3
     python bench/serving.py --presets paper --device cuda     # on a GPU
+    python bench/serving.py --views 3 --fanout-workers 3 --placements pack,spread
 
 Records two scripted lift episodes with the five15 rig, builds a camera-space dataset, and makes
 a checkpoint per preset (one training step: latency does not depend on the weights; DDIM 10).
@@ -15,6 +16,9 @@ client-measured p50/p99 latency and the server's p50 step time, and the two targ
 fan-out's extra time per denoising step over in-process (from the request latency, and from the
 server's step time alone, which leaves out opening and closing the streams), and V=3 composed
 against V=1 (both in-process).
+
+``--placements pack,spread`` (with ``--fanout-workers 3``) compares how a request's views are
+put on several workers, one fan-out backend per placement (``fan-out-pack``, ...).
 
 Each backend runs as ``--replicas`` separate server processes (each with its own workers), pooled:
 two processes of the same code differ by up to 0.7 ms per step on a 2-core VM (measured, A/A),
@@ -211,6 +215,9 @@ def main() -> None:
     ap.add_argument("--size", type=int, default=84)
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--fanout-workers", type=int, default=1, help="worker processes per fan-out server")
+    ap.add_argument(
+        "--placements", default="auto", help="fan-out placements to compare (auto, pack, spread; comma-separated)"
+    )
     ap.add_argument("--replicas", type=int, default=2, help="server processes per backend, pooled")
     ap.add_argument("--echo-gap-ms", type=float, default=4.0, help="idle gap of the grpc-echo-idle row")
     ap.add_argument("--echo-server", action="store_true", help=argparse.SUPPRESS)  # the bench's echo process
@@ -235,18 +242,22 @@ def main() -> None:
             echo, echo_addr = start(["--echo-server", "--echo-gap-ms", "0"], "echo", bench_py)
             idle, idle_addr = start(["--echo-server", "--echo-gap-ms", str(args.echo_gap_ms)], "echo", bench_py)
             procs = [echo, idle]
-            servers: dict[str, list[str]] = {"in-process": [], "fan-out": []}
+            placements = args.placements.split(",")
+            fanouts = {pl: "fan-out" if len(placements) == 1 else f"fan-out-{pl}" for pl in placements}
+            servers: dict[str, list[str]] = {"in-process": [], **{name: [] for name in fanouts.values()}}
             for _ in range(args.replicas):
                 srv = ["serve", "--checkpoint", str(ckpt), "--listen", "127.0.0.1:0"]
                 proc, addr = start([*srv, "--in-process", *dev], "policy")
                 procs.append(proc)
                 servers["in-process"].append(addr)
-                wcmd = ["worker", "--checkpoint", str(ckpt), *dev]
-                workers = [start(wcmd, "worker") for _ in range(args.fanout_workers)]
-                procs += [p for p, _ in workers]
-                proc, addr = start([*srv, *sum((["--worker", a] for _, a in workers), [])], "policy")
-                procs.append(proc)
-                servers["fan-out"].append(addr)
+                for placement, name in fanouts.items():
+                    wcmd = ["worker", "--checkpoint", str(ckpt), *dev]
+                    workers = [start(wcmd, "worker") for _ in range(args.fanout_workers)]
+                    procs += [p for p, _ in workers]
+                    to = sum((["--worker", a] for _, a in workers), [])
+                    proc, addr = start([*srv, *to, "--set", f"placement={placement}"], "policy")
+                    procs.append(proc)
+                    servers[name].append(addr)
             try:
                 results: dict[tuple, list] = {}
                 echo_ms: list[float] = []
@@ -306,11 +317,13 @@ def main() -> None:
 
     targets = {}
     for preset in args.presets.split(","):
-        for v in (1, 3, 5):
-            a, b = row(preset, "fan-out", v, 1), row(preset, "in-process", v, 1)
-            if a and b:
-                targets[f"{preset}_fanout_extra_ms_per_step_V{v}"] = round((a["p50_ms"] - b["p50_ms"]) / 10, 3)
-                targets[f"{preset}_fanout_extra_step_p50_ms_V{v}"] = round(a["step_p50_ms"] - b["step_p50_ms"], 3)
+        for name in sorted({r["backend"] for r in rows if r["backend"].startswith("fan-out")}):
+            tag = name.replace("fan-out", "fanout").replace("-", "_")  # fanout, or fanout_pack, ...
+            for v in (1, 3, 5):
+                a, b = row(preset, name, v, 1), row(preset, "in-process", v, 1)
+                if a and b:
+                    targets[f"{preset}_{tag}_extra_ms_per_step_V{v}"] = round((a["p50_ms"] - b["p50_ms"]) / 10, 3)
+                    targets[f"{preset}_{tag}_extra_step_p50_ms_V{v}"] = round(a["step_p50_ms"] - b["step_p50_ms"], 3)
         for backend, target in (("grpc-echo", "round_trip_floor_ms"), ("grpc-echo-idle", "round_trip_after_idle_ms")):
             floor = next((r for r in rows if r["preset"] == preset and r["backend"] == backend), None)
             if floor:
@@ -318,7 +331,12 @@ def main() -> None:
         one, three = row(preset, "in-process", 1, 1), row(preset, "in-process", 3, 1)
         if one and three:
             targets[f"{preset}_V3_over_V1_in_process"] = round(three["p50_ms"] / one["p50_ms"], 3)
-    settings = {"fanout_workers": args.fanout_workers, "replicas": args.replicas, "echo_gap_ms": args.echo_gap_ms}
+    settings = {
+        "fanout_workers": args.fanout_workers,
+        "placements": args.placements,
+        "replicas": args.replicas,
+        "echo_gap_ms": args.echo_gap_ms,
+    }
     report(
         "serving",
         {"device": args.device, "ddim_steps": 10, "size": args.size, **settings, "targets": targets, "rows": rows},

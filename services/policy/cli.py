@@ -1,7 +1,7 @@
 """``viewscale serve`` and ``viewscale worker`` (also ``python -m services.policy serve|worker``).
 
     viewscale serve --checkpoint runs/lift --listen 127.0.0.1:50051 --views F,FL,FR --workers 3
-    viewscale serve --checkpoint runs/lift --worker 10.0.0.5:7001 --worker 10.0.0.6:7001
+    viewscale serve --checkpoint runs/lift --worker 10.0.0.5:7001 --worker 10.0.0.6:7001 --placement spread
     viewscale serve --checkpoint runs/lift --worker dns:///policy-worker:7001   # every replica, round-robin
     viewscale worker --checkpoint runs/lift --listen 0.0.0.0:7001
 
@@ -72,7 +72,8 @@ def _serve(args: argparse.Namespace) -> int:
 
     if args.views:
         args.views = [v.strip() for v in args.views.split(",") if v.strip()]
-    flags = ["checkpoint", "listen", "views", "workers", "worker", "in_process", "device", "threads", "rig", "task"]
+    flags = ["checkpoint", "listen", "views", "workers", "worker", "in_process", "placement", "device", "threads"]
+    flags += ["rig", "task"]
     cfg = _load(ServerConfig, args, flags, "policy")
     if cfg is None:
         return 2
@@ -129,6 +130,12 @@ def add_policy_commands(subparsers: argparse._SubParsersAction) -> None:
         help="a running worker: host:port, or dns:///name:port / ipv4:A:P,B:P for every replica (repeatable)",
     )
     p.add_argument("--in-process", action="store_true", help="compute every view in this process")
+    p.add_argument(
+        "--placement",
+        choices=["auto", "pack", "spread"],
+        help="a request's views on workers: all on one (pack), one each (spread), "
+        "or auto: pack on CPU workers, spread on GPUs (default)",
+    )
     p.add_argument("--device", help="cpu, cuda or cuda:N (default cpu)")
     p.add_argument("--threads", type=int, help="intra-op threads per model (default 1)")
     p.add_argument("--rig", help="rig preset or YAML with cameras the checkpoint was not trained on")

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Literal
+
 from pydantic import Field, model_validator
 
 from services.core.config import Frozen
@@ -46,6 +48,9 @@ class ServerConfig(Frozen):
     workers: int = Field(0, ge=0)  # local worker processes to start (0 with no addresses: in-process)
     worker: list[str] = Field(default_factory=list)  # addresses of running workers (host:port, or dns:///name:port)
     in_process: bool = False  # compute every view in this process even when workers are given
+    # a request's views on workers: pack (all on one: one forward pass), spread (one each: passes
+    # side by side), auto (pack on CPU workers, spread on GPUs)
+    placement: Literal["auto", "pack", "spread"] = "auto"
     device: str = "cpu"  # device of the in-process model and of local workers
     threads: int = Field(1, ge=1)  # intra-op threads of each model
     token: str | None = None  # bearer token: clients (and this server to its workers) present it

@@ -75,6 +75,7 @@ log = logging.getLogger(__name__)
 
 POLICY_SERVICE = "viewscale.v1.Policy"
 DEFAULT_TIMEOUT_S = 5.0  # a GetAction without a deadline gets this one
+PLACEMENTS = ("auto", "pack", "spread")  # how a request's views are put on workers (WorkerPool.place)
 
 
 class Unavailable(RuntimeError):
@@ -105,6 +106,13 @@ class Denoiser(Protocol):
     @property
     def dropped(self) -> dict[str, str]: ...
 
+    @property
+    def moved(self) -> dict[str, str]: ...
+
+    async def move(self, deadline: float) -> list[str]:
+        """Re-open the views lost since the last call elsewhere (observation again); the ones re-opened."""
+        ...
+
     async def close(self) -> None: ...
 
 
@@ -114,6 +122,7 @@ class SampleResult:
     reference: str
     views_used: list[str]
     dropped: dict[str, str]  # view -> why
+    moved: dict[str, str] = field(default_factory=dict)  # view -> where to, and why
     step_ms: list[float] = field(default_factory=list)
     encode_ms: float = 0.0
 
@@ -136,22 +145,36 @@ async def sample_composed(
         for v in inputs
     }
     ref, G = relative_transforms(transforms, order)
-    t0 = time.perf_counter()
-    await denoiser.open(inputs, unconditional, deadline)
-    result = SampleResult(x_T, ref, [], {}, encode_ms=(time.perf_counter() - t0) * 1e3)
-    x = torch.from_numpy(x_T[None].astype(np.float32))  # (1, Tp, 7) in the reference view's frame
     steps = scheduler.timesteps.tolist()
-    for i, k in enumerate(steps):
+
+    parts_left = len(steps) + 1  # the encode and each step: each gets an equal share of the time left
+
+    def share() -> float:
+        return time.monotonic() + (deadline - time.monotonic()) / parts_left
+
+    t0 = time.perf_counter()
+    result = SampleResult(x_T, ref, [], {})
+    await denoiser.open(inputs, unconditional, share())
+    await denoiser.move(share())  # views whose worker failed or was late: to another one, if there is one
+    parts_left -= 1
+    result.encode_ms = (time.perf_counter() - t0) * 1e3
+    x = torch.from_numpy(x_T[None].astype(np.float32))  # (1, Tp, 7) in the reference view's frame
+    for k in steps:
         why = superseded()
         if why:
             raise Superseded(why)
         if not denoiser.alive:
             raise Unavailable("no view left: " + "; ".join(f"{v}: {w}" for v, w in denoiser.dropped.items()))
         t = time.perf_counter()
-        remaining = deadline - time.monotonic()
-        step_deadline = time.monotonic() + remaining / (len(steps) - i)  # an equal share of what is left
         xs = {v: to_view(x[0].numpy(), G[v]) for v in denoiser.alive}
-        eps, eps_u = await denoiser.step(int(k), xs, step_deadline)
+        eps, eps_u = await denoiser.step(int(k), xs, share())
+        if len(eps) < len(xs):  # a worker failed or was late: its views to another, with a fresh share
+            retry_deadline = share()
+            moved = await denoiser.move(retry_deadline)
+            if moved:
+                more, more_u = await denoiser.step(int(k), {v: xs[v] for v in moved}, retry_deadline)
+                eps.update(more)
+                eps_u.update(more_u)
         if not eps:
             raise Unavailable(
                 f"no view answered step {k}: " + "; ".join(f"{v}: {w}" for v, w in denoiser.dropped.items())
@@ -161,10 +184,12 @@ async def sample_composed(
         else:
             e = compose(eps, G, gammas, order)
         x = scheduler.step(torch.from_numpy(np.asarray(e, dtype=np.float32)[None]), int(k), x).prev_sample
+        parts_left -= 1
         result.step_ms.append((time.perf_counter() - t) * 1e3)
     result.chunk = x[0].numpy()
     result.views_used = [v for v in order if v in denoiser.alive]
     result.dropped = dict(denoiser.dropped)
+    result.moved = dict(denoiser.moved)
     return result
 
 
@@ -183,6 +208,13 @@ class LocalDenoiser:
     @property
     def dropped(self) -> dict[str, str]:
         return {}
+
+    @property
+    def moved(self) -> dict[str, str]:
+        return {}
+
+    async def move(self, deadline: float) -> list[str]:
+        return []  # nothing is ever lost here
 
     async def open(self, inputs, unconditional, deadline) -> None:
         views = list(inputs)
@@ -215,6 +247,7 @@ class WorkerHandle:
     reason: str = "not checked yet"
     streams: int = 0  # open streams (for spreading views)
     balanced: bool = False  # gRPC may spread its streams over several replicas (may_balance)
+    device: str = ""  # its model's device (WorkerInfo), once admitted
 
 
 def may_balance(address: str) -> bool:
@@ -244,9 +277,13 @@ class WorkerPool:
         credentials: grpc.ChannelCredentials | None = None,
         token: str | None = None,
         check_period_s: float = 0.5,
+        placement: str = "auto",
     ):
         if not addresses:
             raise ValueError("no worker addresses")
+        if placement not in PLACEMENTS:
+            raise ValueError(f"placement {placement!r}: one of {', '.join(PLACEMENTS)}")
+        self.placement = placement
         self.sha256 = sha256
         self.check_period_s = check_period_s
         self._metadata = (("authorization", f"Bearer {token}"),) if token else None
@@ -293,9 +330,9 @@ class WorkerPool:
             w.healthy, w.reason = False, reason or "unreachable"
             return
         if not w.healthy:
-            log.info("worker %s admitted", w.address)
+            log.info("worker %s admitted (%s)", w.address, info.device)
             self._changed.set()
-        w.healthy, w.reason = True, ""
+        w.healthy, w.reason, w.device = True, "", info.device
 
     async def check_all(self, only_unhealthy: bool = False) -> None:
         await asyncio.gather(*(self.check(w) for w in self.workers if not (only_unhealthy and w.healthy)))
@@ -314,6 +351,25 @@ class WorkerPool:
         """The healthy worker with the fewest open streams (ties: list order)."""
         ok = [w for w in self.healthy if w.address not in exclude] or self.healthy
         return min(ok, key=lambda w: w.streams) if ok else None
+
+    def place(self, views: list[str]) -> dict[str, WorkerHandle]:
+        """A worker for each view of a request (views left out: no healthy worker).
+
+        ``pack``: all on the least-loaded worker (one forward pass for all of them per step);
+        ``spread``: each on the least-loaded worker not yet given one of them (passes side by side);
+        ``auto``: pack on CPU workers, whose passes would compete for the same cores, spread on
+        GPUs (docs/serving.md has the measurements)."""
+        pack = self.placement == "pack" or (self.placement == "auto" and all(w.device == "cpu" for w in self.healthy))
+        out: dict[str, WorkerHandle] = {}
+        used: set[str] = set()
+        for v in views:
+            w = out[views[0]] if pack and out else self.pick(exclude=used)
+            if w is None:
+                break
+            used.add(w.address)
+            w.streams += 1
+            out[v] = w
+        return out
 
     async def wait_ready(self, n: int, timeout: float) -> None:
         deadline = time.monotonic() + timeout
@@ -340,13 +396,19 @@ class _Stream:
 
 
 class RemoteDenoiser:
-    """One Denoise stream per view, to the pool's workers; a failure drops the view, never hangs."""
+    """One Denoise stream per view, to the pool's workers. A view whose worker fails or is late
+    moves once to another healthy worker (``move``: its observation again) while the request has
+    time; otherwise it is dropped. Never a hang."""
 
     def __init__(self, pool: WorkerPool, spec: PolicySpec):
         self.pool = pool
         self.spec = spec
         self._streams: dict[str, _Stream] = {}
         self._dropped: dict[str, str] = {}
+        self._moved: dict[str, str] = {}
+        self._lost: list[str] = []  # dropped since the last move() and not moved before
+        self._inputs: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+        self._unconditional = False
 
     @property
     def alive(self) -> list[str]:
@@ -356,7 +418,11 @@ class RemoteDenoiser:
     def dropped(self) -> dict[str, str]:
         return self._dropped
 
-    def _drop(self, view: str, reason: str, trip: bool = True) -> None:
+    @property
+    def moved(self) -> dict[str, str]:
+        return self._moved
+
+    def _drop(self, view: str, reason: str, trip: bool = True, movable: bool = True) -> None:
         s = self._streams.pop(view, None)
         self._dropped[view] = reason
         if s is not None:
@@ -364,6 +430,8 @@ class RemoteDenoiser:
             if trip:
                 self.pool.trip(s.worker, reason)
             s.call.cancel()
+        if movable and view not in self._moved and view not in self._lost:
+            self._lost.append(view)
 
     async def _call(self, view: str, req: policy_pb2.DenoiseRequest, deadline: float) -> policy_pb2.DenoiseReply | None:
         s = self._streams[view]
@@ -377,7 +445,9 @@ class RemoteDenoiser:
             self._drop(view, f"worker {s.worker.address} late (step deadline)")
             return None
         except grpc.aio.AioRpcError as exc:
-            self._drop(view, f"worker {s.worker.address}: {exc.code().name} {exc.details()}")
+            # refused input is refused by every worker: not worth moving
+            refused = exc.code() == grpc.StatusCode.INVALID_ARGUMENT
+            self._drop(view, f"worker {s.worker.address}: {exc.code().name} {exc.details()}", movable=not refused)
             return None
         if reply is grpc.aio.EOF:
             self._drop(view, f"worker {s.worker.address} closed the stream")
@@ -395,43 +465,64 @@ class RemoteDenoiser:
         return (md.get(REPLICA_KEY) if md else None) or uuid.uuid4().hex
 
     async def open(self, inputs, unconditional, deadline) -> None:
-        used: set[str] = set()
-        for v in inputs:
-            w = self.pool.pick(exclude=used)
-            if w is None:
-                self._dropped[v] = "no healthy worker"
-                continue
-            used.add(w.address)
-            w.streams += 1
+        self._inputs, self._unconditional = inputs, unconditional
+        await self._open(list(inputs), deadline)
+
+    async def move(self, deadline: float) -> list[str]:
+        lost, self._lost = self._lost, []
+        if not lost or time.monotonic() >= deadline:
+            return []
+        why = {v: self._dropped[v] for v in lost}
+        for v in lost:
+            self._moved[v] = ""  # once per request: a failure of the move is final
+        await self._open(lost, deadline)
+        done = [v for v in lost if v in self._streams]
+        for v in lost:
+            if v in done:
+                del self._dropped[v]
+                self._moved[v] = f"moved to worker {self._streams[v].worker.address} ({why[v]})"
+            else:
+                del self._moved[v]
+        if done:
+            log.info("views %s moved to other workers: %s", ",".join(done), "; ".join(why[v] for v in done))
+        return done
+
+    async def _open(self, views: list[str], deadline: float) -> None:
+        """Streams for ``views`` on the workers the pool places them on, their observations sent."""
+        placed = self.pool.place(views)
+        for v in views:
+            if v not in placed:
+                self._dropped.setdefault(v, "no healthy worker")
+        for v, w in placed.items():
             self._streams[v] = _Stream(w, w.stub.Denoise(metadata=self.pool._metadata))
         # The views that share a worker form a group there: one forward pass for all of them per
         # step. Behind a balanced address the streams may have reached different replicas (a
         # replica would wait for members that went elsewhere): each stream says which replica took
         # it, and the views are grouped by that.
-        balanced = [v for v, st in self._streams.items() if st.worker.balanced]
+        balanced = [v for v in placed if placed[v].balanced]
         replicas = dict(zip(balanced, await asyncio.gather(*(self._replica(v, deadline) for v in balanced))))
         per_worker: dict[tuple[str, str], list[str]] = {}
-        for v, st in self._streams.items():
-            per_worker.setdefault((st.worker.address, replicas.get(v, "")), []).append(v)
+        for v, w in placed.items():
+            per_worker.setdefault((w.address, replicas.get(v, "")), []).append(v)
         group: dict[str, tuple[str, int]] = {}
         for vs in per_worker.values():
             gid = uuid.uuid4().hex
             for v in vs:
                 group[v] = (gid, len(vs)) if len(vs) > 1 else ("", 0)
         reqs = {}
-        for v, (frames, state) in inputs.items():
-            if v in self._streams:
-                obs = policy_pb2.DenoiseObservation(
-                    checkpoint_sha256=self.pool.sha256,
-                    view=v,
-                    frames=to_tensor(frames),
-                    unconditional=unconditional,
-                    group=group[v][0],
-                    group_size=group[v][1],
-                )
-                if state.shape[-1]:
-                    obs.state.CopyFrom(to_tensor(state))
-                reqs[v] = policy_pb2.DenoiseRequest(observation=obs)
+        for v in placed:
+            frames, state = self._inputs[v]
+            obs = policy_pb2.DenoiseObservation(
+                checkpoint_sha256=self.pool.sha256,
+                view=v,
+                frames=to_tensor(frames),
+                unconditional=self._unconditional,
+                group=group[v][0],
+                group_size=group[v][1],
+            )
+            if state.shape[-1]:
+                obs.state.CopyFrom(to_tensor(state))
+            reqs[v] = policy_pb2.DenoiseRequest(observation=obs)
         await asyncio.gather(*(self._call(v, r, deadline) for v, r in reqs.items()))
 
     async def step(self, k, xs, deadline):
@@ -626,14 +717,14 @@ class PolicyService(policy_pb2_grpc.PolicyServicer):
             await denoiser.close()
         actions = chunk_to_base(result.chunk, self.spec, result.reference, parsed.eef_quat_wxyz[-1])
         self.requests += 1
-        self.degraded += bool(result.dropped)
+        self.degraded += bool(result.dropped or result.moved)
         reply = policy_pb2.ActionReply(
             seq=parsed.seq,
             start_index=self.spec.To - 1,
             obs_stamp_ns=parsed.obs_stamp_ns,
             views_used=result.views_used,
-            degraded=bool(result.dropped),
-            degraded_reasons=[f"{v}: {why}" for v, why in result.dropped.items()],
+            degraded=bool(result.dropped or result.moved),
+            degraded_reasons=[f"{v}: {why}" for v, why in {**result.dropped, **result.moved}.items()],
             checkpoint_sha256=self.spec.sha256,
         )
         for row in actions:
@@ -817,7 +908,7 @@ async def serve_policy(cfg, stop: asyncio.Event, worker_addresses: list[str], an
         creds_out = None
         if cfg.tls.ca:
             creds_out = grpc.ssl_channel_credentials(root_certificates=Path(cfg.tls.ca).read_bytes())
-        pool = WorkerPool(worker_addresses, spec.sha256, creds_out, cfg.token)
+        pool = WorkerPool(worker_addresses, spec.sha256, creds_out, cfg.token, placement=cfg.placement)
         await pool.start()
         await pool.wait_ready(1, cfg.worker_ready_s)
         service.backend = lambda: RemoteDenoiser(pool, spec)

@@ -1,0 +1,89 @@
+"""The server's worker pool: which addresses gRPC may balance over several replicas, that the CLI
+keeps an address with commas whole, and where a request's views are placed."""
+
+from __future__ import annotations
+
+import argparse
+
+import pytest
+
+from services.policy.cli import _load, add_policy_commands
+from services.policy.config import ServerConfig
+from services.policy.server import may_balance
+
+
+@pytest.mark.parametrize(
+    "address, balanced",
+    [
+        ("127.0.0.1:7001", False),
+        ("[::1]:7001", False),
+        ("10.0.0.5:7001", False),
+        ("unix:/tmp/worker.sock", False),
+        ("ipv4:127.0.0.1:7001", False),
+        ("ipv4:127.0.0.1:7001,127.0.0.1:7002", True),
+        ("ipv6:[::1]:7001,[::1]:7002", True),
+        ("dns:///policy-worker:7001", True),
+        ("policy-worker:7001", True),  # a host name may resolve to every replica
+        ("localhost:7001", True),
+    ],
+)
+def test_which_addresses_may_reach_several_replicas(address, balanced):
+    assert may_balance(address) is balanced
+
+
+def test_a_worker_address_with_commas_stays_one_address():
+    parser = argparse.ArgumentParser()
+    add_policy_commands(parser.add_subparsers())
+    many = "ipv4:127.0.0.1:7001,127.0.0.1:7002"
+    args = parser.parse_args(["serve", "--checkpoint", "ck", "--worker", many, "--worker", "10.0.0.5:7001"])
+    cfg = _load(ServerConfig, args, ["checkpoint", "worker"], "policy")
+    assert cfg.worker == [many, "10.0.0.5:7001"]
+
+
+def _pool(placement: str, devices: list[str], streams: list[int]):
+    """A pool of admitted workers (channels to nowhere: placing opens no call)."""
+    import asyncio
+
+    from services.policy.server import WorkerPool
+
+    async def make():
+        pool = WorkerPool([f"127.0.0.1:{7001 + i}" for i in range(len(devices))], "sha", placement=placement)
+        for w, dev, n in zip(pool.workers, devices, streams):
+            w.healthy, w.device, w.streams = True, dev, n
+        return pool
+
+    return asyncio.run(make())
+
+
+def _where(placed) -> dict[str, int]:
+    return {v: int(w.address.rsplit(":", 1)[1]) - 7001 for v, w in placed.items()}
+
+
+def test_pack_puts_a_requests_views_on_the_least_loaded_worker():
+    pool = _pool("pack", ["cpu"] * 3, [2, 1, 3])
+    assert _where(pool.place(["F", "FL", "FR"])) == {"F": 1, "FL": 1, "FR": 1}
+    assert [w.streams for w in pool.workers] == [2, 4, 3]
+    assert _where(pool.place(["F"])) == {"F": 0}  # the next request: now the least loaded
+
+
+def test_spread_gives_each_view_its_own_worker_while_there_are_any():
+    pool = _pool("spread", ["cpu"] * 3, [0, 0, 0])
+    assert _where(pool.place(["F", "FL", "FR", "FU"])) == {"F": 0, "FL": 1, "FR": 2, "FU": 0}
+    pool.workers[1].healthy = False
+    assert set(_where(pool.place(["F", "FL"])).values()) == {0, 2}
+
+
+def test_auto_packs_on_cpu_workers_and_spreads_on_gpus():
+    assert len(set(_where(_pool("auto", ["cpu"] * 3, [0] * 3).place(["F", "FL", "FR"])).values())) == 1
+    gpus = _pool("auto", ["cuda:0", "cuda:1", "cuda:0"], [0] * 3)
+    assert len(set(_where(gpus.place(["F", "FL", "FR"])).values())) == 3
+    mixed = _pool("auto", ["cpu", "cuda:0"], [0, 0])
+    assert len(set(_where(mixed.place(["F", "FL"])).values())) == 2
+
+
+def test_no_healthy_worker_places_nothing_and_a_bad_placement_is_refused():
+    pool = _pool("pack", ["cpu"], [0])
+    pool.workers[0].healthy = False
+    assert pool.place(["F", "FL"]) == {}
+    with pytest.raises(ValueError, match="placement 'tight'"):
+        _pool("tight", ["cpu"], [0])
