@@ -4,9 +4,6 @@ its refusals (each with the right code, the worker still serving), and its token
 from __future__ import annotations
 
 import os
-import signal
-import subprocess
-import sys
 import threading
 from pathlib import Path
 
@@ -14,36 +11,13 @@ import grpc
 import numpy as np
 import pytest
 from grpc_health.v1 import health_pb2, health_pb2_grpc
+from policy_processes import start_worker, stop
 
 from services.core.tensors import to_tensor
 from services.pb import policy_pb2, policy_pb2_grpc
 from services.policy.checkpoint import checkpoint_sha256, read_info
 
 ROOT = Path(__file__).resolve().parents[2]
-
-
-def start_worker(ckpt: Path, *args: str, env=None) -> tuple[subprocess.Popen, str]:
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "services.policy", "worker", "--checkpoint", str(ckpt), *args],
-        cwd=ROOT,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        env=env,
-    )
-    for line in proc.stdout:
-        if line.startswith("ready worker "):
-            return proc, line.split()[2]
-    raise AssertionError(f"the worker did not start: {proc.stderr.read()[-3000:]}")
-
-
-def stop(proc: subprocess.Popen) -> None:
-    proc.send_signal(signal.SIGTERM)
-    try:
-        proc.wait(timeout=20)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        proc.wait()
 
 
 @pytest.fixture(scope="module")

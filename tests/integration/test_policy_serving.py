@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 import torch
 from grpc_health.v1 import health_pb2, health_pb2_grpc
+from policy_processes import start, start_server, start_worker, stop, worker_info
 
 from services.core.action_spaces import from_space
 from services.core.bus import free_tcp_port
@@ -51,44 +52,6 @@ def observations(sim_dataset) -> list[tuple[dict, list[State]]]:
         ]
         out.append(({c: f[t - 1 : t + 1] for c, f in frames.items()}, st))
     return out
-
-
-def _start(args: list[str], kind: str, env=None) -> tuple[subprocess.Popen, str]:
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "services.policy", *args],
-        cwd=ROOT,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        env=env,
-    )
-    for line in proc.stdout:
-        if line.startswith(f"ready {kind} "):
-            return proc, line.split()[2]
-    raise AssertionError(f"{kind} did not start: {proc.stderr.read()[-3000:]}")
-
-
-def start_worker(ckpt: Path, port: int = 0, *args: str) -> tuple[subprocess.Popen, str]:
-    return _start(["worker", "--checkpoint", str(ckpt), "--listen", f"127.0.0.1:{port}", *args], "worker")
-
-
-def start_server(ckpt: Path, *args: str, env=None) -> tuple[subprocess.Popen, str]:
-    return _start(["serve", "--checkpoint", str(ckpt), "--listen", "127.0.0.1:0", *args], "policy", env)
-
-
-def worker_info(address: str) -> policy_pb2.WorkerInfo:
-    with grpc.insecure_channel(address) as ch:
-        return policy_pb2_grpc.DenoiseWorkerStub(ch).GetWorkerInfo(policy_pb2.WorkerInfoRequest(), timeout=10)
-
-
-def stop(proc: subprocess.Popen) -> None:
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGTERM)
-        try:
-            proc.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
 
 
 def reference_actions(ckpt: Path, frames, states, view: str, seed: int) -> np.ndarray:
@@ -133,7 +96,7 @@ def test_fan_out_to_workers_gives_the_in_process_actions(checkpoint, observation
     # the grouping worker waits as long as it takes for a group's views (a loaded machine can hold a
     # view's message back longer than the default 50 ms): the pass count below is then exact
     workers = [start_worker(checkpoint) for _ in range(3)]
-    workers += [start_worker(checkpoint, 0, "--set", "group_wait_ms=60000") for _ in range(3)]
+    workers += [start_worker(checkpoint, "--set", "group_wait_ms=60000") for _ in range(3)]
     # two replicas behind one balanced address (as a DNS name of several replicas): gRPC spreads
     # the streams over them, and the server groups the views by the replica each stream reached
     balanced = "ipv4:" + ",".join(a for _, a in workers[4:6])
@@ -180,7 +143,7 @@ def test_a_frozen_or_killed_worker_moves_its_views_and_is_readmitted(checkpoint,
     move to another worker, so not one GetAction fails; the answers say so and are what a healthy
     server answers; resumed, and restarted, it is re-admitted."""
     ports = [free_tcp_port() for _ in range(3)]
-    workers = [start_worker(checkpoint, p) for p in ports]
+    workers = [start_worker(checkpoint, port=p) for p in ports]
     server, addr = start_server(checkpoint, "--views", "F,FL,FR", *sum((["--worker", a] for _, a in workers), []))
     results: list = []  # (when it came, observation index, seed, chunk)
     errors: list = []
@@ -228,7 +191,7 @@ def test_a_frozen_or_killed_worker_moves_its_views_and_is_readmitted(checkpoint,
         t1 = time.monotonic()
         workers[1][0].kill()  # kill -9: its streams break mid-request
         killed = moved_after(t1, "killed")
-        workers[1] = start_worker(checkpoint, ports[1])
+        workers[1] = start_worker(checkpoint, port=ports[1])
         gets_streams(workers[1][1], 0, "restarted")  # a new process: nothing served yet
         stop_flag.set()
         for t in threads:
@@ -381,7 +344,7 @@ def test_a_chunk_from_another_checkpoint_is_refused_after_a_restart(checkpoint, 
 
     def serve(ckpt: Path) -> subprocess.Popen:
         args = ["serve", "--checkpoint", str(ckpt), "--listen", f"127.0.0.1:{port}", "--views", "F", "--in-process"]
-        return _start(args, "policy")[0]
+        return start(args, "policy")[0]
 
     proc = serve(checkpoint)
     try:
@@ -426,7 +389,7 @@ def test_health_is_not_serving_until_a_worker_is_ready(checkpoint):
         with pytest.raises(grpc.RpcError) as err:
             policy_pb2_grpc.PolicyStub(grpc.insecure_channel(addr)).GetAction(policy_pb2.ActionRequest(), timeout=5)
         assert err.value.code() == grpc.StatusCode.UNAVAILABLE
-        worker = start_worker(checkpoint, port)
+        worker = start_worker(checkpoint, port=port)
         assert proc.stdout.readline().startswith("ready policy ")
         assert check() == health_pb2.HealthCheckResponse.SERVING
     finally:
