@@ -11,10 +11,12 @@ is a backend behind one interface:
 
 - ``LocalDenoiser``: a ModelEngine in this process, every view of a request in one forward pass;
 - ``RemoteDenoiser``: one ``DenoiseWorker.Denoise`` stream per view to worker processes (local
-  ones it started, given addresses, or one DNS name balanced round-robin over its replicas).
-  Each step has a deadline from the request's; a worker that is down, late or refusing is
-  dropped for the rest of the request (the reply says ``degraded`` and why) and rests in a
-  circuit breaker until its health check says SERVING again. No view left: UNAVAILABLE.
+  ones it started, given addresses, or one DNS name balanced round-robin over its replicas),
+  placed by ``WorkerPool.place`` (pack, spread, auto). Each step has a deadline from the
+  request's; a worker that is down, late or refusing is skipped for the rest of the request,
+  its views moved once to another healthy worker (else dropped; the reply says ``degraded`` and
+  why), and it rests in a circuit breaker until its health check says SERVING again. No view
+  left: UNAVAILABLE.
 
 Sessions (one per robot) keep their noise generator and scheduler; a newer request of a session
 cancels its older one (ABORTED). Health (NOT_SERVING until the model or the workers are ready)
@@ -147,15 +149,19 @@ async def sample_composed(
     ref, G = relative_transforms(transforms, order)
     steps = scheduler.timesteps.tolist()
 
-    parts_left = len(steps) + 1  # the encode and each step: each gets an equal share of the time left
+    # The encode and each step get an equal share of the time left, with one share more kept back
+    # for moving views whose worker fails or is late (a retry gets that share too). Without the
+    # reserve, the last step's share would be all the time left: a worker stuck there would hold
+    # the request to its deadline with no time to move.
+    parts_left = len(steps) + 1
 
-    def share() -> float:
-        return time.monotonic() + (deadline - time.monotonic()) / parts_left
+    def share(retry: bool = False) -> float:
+        return time.monotonic() + (deadline - time.monotonic()) / (parts_left + (0 if retry else 1))
 
     t0 = time.perf_counter()
     result = SampleResult(x_T, ref, [], {})
     await denoiser.open(inputs, unconditional, share())
-    await denoiser.move(share())  # views whose worker failed or was late: to another one, if there is one
+    await denoiser.move(share(retry=True))  # views whose worker failed or was late: to another one
     parts_left -= 1
     result.encode_ms = (time.perf_counter() - t0) * 1e3
     x = torch.from_numpy(x_T[None].astype(np.float32))  # (1, Tp, 7) in the reference view's frame
@@ -169,7 +175,7 @@ async def sample_composed(
         xs = {v: to_view(x[0].numpy(), G[v]) for v in denoiser.alive}
         eps, eps_u = await denoiser.step(int(k), xs, share())
         if len(eps) < len(xs):  # a worker failed or was late: its views to another, with a fresh share
-            retry_deadline = share()
+            retry_deadline = share(retry=True)
             moved = await denoiser.move(retry_deadline)
             if moved:
                 more, more_u = await denoiser.step(int(k), {v: xs[v] for v in moved}, retry_deadline)
@@ -338,7 +344,12 @@ class WorkerPool:
         await asyncio.gather(*(self.check(w) for w in self.workers if not (only_unhealthy and w.healthy)))
 
     def trip(self, w: WorkerHandle, reason: str) -> None:
-        """A failure in a request: out until its health check admits it again."""
+        """A failure in a request: out until its health check admits it again. Not an address
+        balanced over several replicas: gRPC's balancer stops using a replica whose connection
+        fails, and taking the address out would take the live replicas with it."""
+        if w.balanced:
+            log.warning("worker %s (one of its replicas): %s", w.address, reason)
+            return
         if w.healthy:
             log.warning("worker %s tripped: %s", w.address, reason)
         w.healthy, w.reason = False, reason
@@ -443,6 +454,9 @@ class RemoteDenoiser:
                 reply = await s.call.read()
         except TimeoutError:
             self._drop(view, f"worker {s.worker.address} late (step deadline)")
+            return None
+        except asyncio.InvalidStateError:  # the stream ended before this write (its worker went)
+            self._drop(view, f"worker {s.worker.address}: the stream had ended")
             return None
         except grpc.aio.AioRpcError as exc:
             # refused input is refused by every worker: not worth moving

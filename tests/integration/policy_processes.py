@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import os
 import signal
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 import grpc
@@ -15,19 +17,26 @@ ROOT = Path(__file__).resolve().parents[2]
 
 
 def start(args: list[str], kind: str, env=None) -> tuple[subprocess.Popen, str]:
-    """``python -m services.policy ARGS``, once it prints ``ready KIND ADDRESS``: (process, address)."""
+    """``python -m services.policy ARGS``, once it prints ``ready KIND ADDRESS``: (process, address).
+
+    Its log goes to a file (``proc.log_path``), never to a pipe nobody reads: a full pipe would
+    block the process at its next log line."""
+    log = tempfile.NamedTemporaryFile("w+", prefix=f"vs-{kind}-", suffix=".log", delete=False)
     proc = subprocess.Popen(
         [sys.executable, "-m", "services.policy", *args],
         cwd=ROOT,
         stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
+        stderr=log,
         text=True,
         env=env,
     )
+    proc.log_path = Path(log.name)
+    log.close()
     for line in proc.stdout:
         if line.startswith(f"ready {kind} "):
             return proc, line.split()[2]
-    raise AssertionError(f"{kind} did not start: {proc.stderr.read()[-3000:]}")
+    proc.wait()
+    raise AssertionError(f"{kind} did not start: {proc.log_path.read_text()[-3000:]}")
 
 
 def start_worker(ckpt: Path, *args: str, port: int = 0, env=None) -> tuple[subprocess.Popen, str]:
@@ -44,7 +53,7 @@ def worker_info(address: str) -> policy_pb2.WorkerInfo:
 
 
 def stop(proc: subprocess.Popen) -> None:
-    """SIGTERM (SIGCONT first, for a process a test froze), SIGKILL after 20 s."""
+    """SIGTERM (SIGCONT first, for a process a test froze), SIGKILL after 20 s; its log removed."""
     if proc.poll() is None:
         proc.send_signal(signal.SIGCONT)
         proc.send_signal(signal.SIGTERM)
@@ -53,3 +62,8 @@ def stop(proc: subprocess.Popen) -> None:
         except subprocess.TimeoutExpired:
             proc.kill()
             proc.wait()
+    if proc.stdout:
+        proc.stdout.close()
+    log_path = getattr(proc, "log_path", None)
+    if log_path is not None and not os.environ.get("VIEWSCALE_KEEP_TEST_LOGS"):
+        log_path.unlink(missing_ok=True)
