@@ -57,6 +57,9 @@ class ServerConfig(Frozen):
     tls: TlsConfig = TlsConfig()  # serve over TLS
     request_timeout_s: float = Field(5.0, gt=0)  # deadline of a GetAction whose call carries none
     worker_ready_s: float = Field(120.0, gt=0)  # how long to wait for the first worker to be ready
+    # a worker connection that has read nothing this long is pinged, and closed when the ping goes
+    # unanswered as long again: a frozen or cut-off replica behind a balanced address is left
+    worker_keepalive_s: float = Field(5.0, ge=1.0)
     max_sessions: int = Field(256, ge=1)  # robot sessions kept (idle ones are forgotten first)
     max_message_mb: int = Field(16, ge=1)  # gRPC message size cap, both ways
     log_level: str = "INFO"  # logging level of the process

@@ -284,6 +284,7 @@ class WorkerPool:
         token: str | None = None,
         check_period_s: float = 0.5,
         placement: str = "auto",
+        keepalive_s: float = 5.0,
     ):
         if not addresses:
             raise ValueError("no worker addresses")
@@ -298,6 +299,14 @@ class WorkerPool:
             ("grpc.lb_policy_name", "round_robin"),
             ("grpc.max_receive_message_length", 16 << 20),
             ("grpc.max_send_message_length", 16 << 20),
+            # A connection whose peer stopped answering (a frozen process, a host cut off: the
+            # socket stays open) is closed after a ping goes unanswered, so the balancer leaves it.
+            # The workers accept pings this often (worker.KEEPALIVE_MIN_PING_MS).
+            ("grpc.keepalive_time_ms", int(keepalive_s * 1e3)),
+            ("grpc.keepalive_timeout_ms", int(keepalive_s * 1e3)),
+            ("grpc.http2.ping_timeout_ms", int(keepalive_s * 1e3)),  # what closes it in grpc 1.85
+            ("grpc.keepalive_permit_without_calls", 1),
+            ("grpc.http2.max_pings_without_data", 0),
         ]
         for addr in addresses:
             ch = (
@@ -461,22 +470,45 @@ class RemoteDenoiser:
         except grpc.aio.AioRpcError as exc:
             # refused input is refused by every worker: not worth moving
             refused = exc.code() == grpc.StatusCode.INVALID_ARGUMENT
-            self._drop(view, f"worker {s.worker.address}: {exc.code().name} {exc.details()}", movable=not refused)
+            why = f"worker {s.worker.address}: {exc.code().name} {exc.details()}"
+            self._drop(view, why, movable=not refused)
             return None
         if reply is grpc.aio.EOF:
             self._drop(view, f"worker {s.worker.address} closed the stream")
             return None
         return reply
 
-    async def _replica(self, view: str, deadline: float) -> str:
-        """The worker process that took this view's stream (its initial metadata)."""
+    async def _replica(self, view: str, deadline: float, tries: int = 1) -> str | None:
+        """The worker process that took this view's stream (its initial metadata); None if none
+        said so by ``deadline`` (a replica frozen, or cut off behind a network that drops).
+
+        ``tries`` > 1 (moving a view to a balanced address): that many streams at once, which
+        the balancer gives to different replicas; the first to answer is kept, the rest cancelled."""
+        s = self._streams[view]
+        calls = [s.call] + [s.worker.stub.Denoise(metadata=self.pool._metadata) for _ in range(tries - 1)]
+        waits = {asyncio.ensure_future(c.initial_metadata()): c for c in calls}
+        kept, replica = None, None
         try:
-            async with asyncio.timeout_at(deadline):
-                md = await self._streams[view].call.initial_metadata()
-        except (TimeoutError, grpc.aio.AioRpcError):
-            md = None
-        # not told (the stream failed: its observation will say how): a group of its own
-        return (md.get(REPLICA_KEY) if md else None) or uuid.uuid4().hex
+            while waits and kept is None:
+                timeout = deadline - time.monotonic()
+                done, _ = await asyncio.wait(waits, timeout=timeout, return_when=asyncio.FIRST_COMPLETED)
+                if not done:
+                    break  # late
+                for f in done:
+                    call = waits.pop(f)
+                    md = None if f.exception() else f.result()
+                    if kept is None and (md is not None or not waits):
+                        # not told (the last stream failed: its observation will say how): a group of its own
+                        kept, replica = call, (md.get(REPLICA_KEY) if md else None) or uuid.uuid4().hex
+        finally:
+            for f in waits:
+                f.cancel()
+            for call in calls:
+                if call is not kept and call is not s.call:
+                    call.cancel()
+        if kept is not None:
+            s.call = kept
+        return replica
 
     async def open(self, inputs, unconditional, deadline) -> None:
         self._inputs, self._unconditional = inputs, unconditional
@@ -489,7 +521,7 @@ class RemoteDenoiser:
         why = {v: self._dropped[v] for v in lost}
         for v in lost:
             self._moved[v] = ""  # once per request: a failure of the move is final
-        await self._open(lost, deadline)
+        await self._open(lost, deadline, tries=2)
         done = [v for v in lost if v in self._streams]
         for v in lost:
             if v in done:
@@ -501,8 +533,9 @@ class RemoteDenoiser:
             log.info("views %s moved to other workers: %s", ",".join(done), "; ".join(why[v] for v in done))
         return done
 
-    async def _open(self, views: list[str], deadline: float) -> None:
-        """Streams for ``views`` on the workers the pool places them on, their observations sent."""
+    async def _open(self, views: list[str], deadline: float, tries: int = 1) -> None:
+        """Streams for ``views`` on the workers the pool places them on, their observations sent
+        (``tries``: streams tried at once per view behind a balanced address, see ``_replica``)."""
         placed = self.pool.place(views)
         for v in views:
             if v not in placed:
@@ -514,7 +547,14 @@ class RemoteDenoiser:
         # replica would wait for members that went elsewhere): each stream says which replica took
         # it, and the views are grouped by that.
         balanced = [v for v in placed if placed[v].balanced]
-        replicas = dict(zip(balanced, await asyncio.gather(*(self._replica(v, deadline) for v in balanced))))
+        replicas: dict[str, str | None] = {}
+        if balanced:
+            # half the time to hear which replica took each stream, half for the observations
+            told_by = time.monotonic() + (deadline - time.monotonic()) / 2
+            replicas = dict(zip(balanced, await asyncio.gather(*(self._replica(v, told_by, tries) for v in balanced))))
+            for v in balanced:
+                if replicas[v] is None:  # its replica is frozen or cut off: the others go on without it
+                    self._drop(v, f"worker {placed.pop(v).address} late (no replica took the stream)")
         per_worker: dict[tuple[str, str], list[str]] = {}
         for v, w in placed.items():
             per_worker.setdefault((w.address, replicas.get(v, "")), []).append(v)
@@ -922,7 +962,14 @@ async def serve_policy(cfg, stop: asyncio.Event, worker_addresses: list[str], an
         creds_out = None
         if cfg.tls.ca:
             creds_out = grpc.ssl_channel_credentials(root_certificates=Path(cfg.tls.ca).read_bytes())
-        pool = WorkerPool(worker_addresses, spec.sha256, creds_out, cfg.token, placement=cfg.placement)
+        pool = WorkerPool(
+            worker_addresses,
+            spec.sha256,
+            creds_out,
+            cfg.token,
+            placement=cfg.placement,
+            keepalive_s=cfg.worker_keepalive_s,
+        )
         await pool.start()
         await pool.wait_ready(1, cfg.worker_ready_s)
         service.backend = lambda: RemoteDenoiser(pool, spec)

@@ -60,6 +60,8 @@ WORKER_SERVICE = "viewscale.v1.DenoiseWorker"
 # gRPC balances over several replicas (a DNS name), the server learns from it which of a
 # request's views share a replica, and groups only those.
 REPLICA_KEY = "viewscale-replica"
+# the most often a worker accepts keepalive pings (the server pings every worker_keepalive_s >= 1 s)
+KEEPALIVE_MIN_PING_MS = 500
 
 
 @dataclass
@@ -503,7 +505,13 @@ async def serve_worker(cfg, stop: asyncio.Event, announce=print) -> int:
     server = grpc.server(
         futures.ThreadPoolExecutor(max_workers=cfg.max_streams, thread_name_prefix="denoise"),
         interceptors=[WorkerTokenInterceptor(cfg.token)] if cfg.token else [],
-        options=[("grpc.max_receive_message_length", size), ("grpc.max_send_message_length", size)],
+        options=[
+            ("grpc.max_receive_message_length", size),
+            ("grpc.max_send_message_length", size),
+            # the policy server's keepalive pings, idle or not (grpc's default would refuse them)
+            ("grpc.keepalive_permit_without_calls", 1),
+            ("grpc.http2.min_recv_ping_interval_without_data_ms", KEEPALIVE_MIN_PING_MS),
+        ],
         maximum_concurrent_rpcs=cfg.max_streams,
     )
     service = DenoiseWorkerService(max_streams=cfg.max_streams, group_wait_s=cfg.group_wait_ms / 1e3)

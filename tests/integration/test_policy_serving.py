@@ -10,6 +10,7 @@ import sys
 import threading
 import time
 from pathlib import Path
+from typing import NamedTuple
 
 import grpc
 import numpy as np
@@ -17,12 +18,13 @@ import pytest
 import torch
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 from policy_processes import start, start_server, start_worker, stop, worker_info
+from polling import wait_for
 
 from services.core.action_spaces import from_space
 from services.core.bus import free_tcp_port
 from services.pb import policy_pb2, policy_pb2_grpc
 from services.policy.checkpoint import load_policy
-from services.policy.client import PolicyClient, PolicyError, State
+from services.policy.client import ActionChunk, PolicyClient, PolicyError, State
 from services.policy.config import ServerConfig
 from services.policy.model import sample
 from services.policy.observation import model_inputs, parse
@@ -137,6 +139,59 @@ def test_fan_out_to_workers_gives_the_in_process_actions(checkpoint, observation
             stop(p)
 
 
+class Answer(NamedTuple):
+    sent: float  # when the request went (time.monotonic)
+    came: float  # when its answer came
+    obs: int  # index into the observations
+    seed: int
+    chunk: ActionChunk
+
+
+class Robots:
+    """Robots calling GetAction in a loop, each on its own thread, while the block runs: every
+    answer (``results``) and every failure (``errors``)."""
+
+    def __init__(self, address: str, observations, n: int = 4):
+        self.results: list[Answer] = []
+        self.errors: list[PolicyError] = []
+        self._stop = threading.Event()
+        self._threads = [threading.Thread(target=self._loop, args=(address, observations, i)) for i in range(n)]
+
+    def _loop(self, address: str, observations, i: int) -> None:
+        with PolicyClient(address, session_id=f"robot-{i}", timeout_s=10.0) as client:
+            n = 0
+            while not self._stop.is_set():
+                j, seed = n % len(observations), 1000 * i + n
+                try:
+                    sent = time.monotonic()
+                    chunk = client.get_action(*observations[j], seed=seed)
+                    self.results.append(Answer(sent, time.monotonic(), j, seed, chunk))
+                except PolicyError as exc:
+                    self.errors.append(exc)
+                n += 1
+
+    def __enter__(self) -> Robots:
+        for t in self._threads:
+            t.start()
+        wait_for(lambda: len(self.results) >= len(self._threads), 60, "the robots' first answers")
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stop.set()
+        for t in self._threads:
+            t.join(timeout=30)
+
+    def moved_after(self, t0: float) -> Answer | None:
+        """An answer since ``t0`` with views that moved to another worker."""
+        return next(
+            (a for a in list(self.results) if a.came > t0 and any("moved to" in w for w in a.chunk.degraded_reasons)),
+            None,
+        )
+
+    def sent_after(self, t0: float) -> list[Answer]:
+        return [a for a in list(self.results) if a.sent > t0]
+
+
 def test_a_frozen_or_killed_worker_moves_its_views_and_is_readmitted(checkpoint, observations):
     """Three CPU workers (placement auto: a request's three views packed on one); four robots call
     in a loop. A worker frozen (SIGSTOP), then killed (kill -9): the views of the requests it held
@@ -145,72 +200,33 @@ def test_a_frozen_or_killed_worker_moves_its_views_and_is_readmitted(checkpoint,
     ports = [free_tcp_port() for _ in range(3)]
     workers = [start_worker(checkpoint, port=p) for p in ports]
     server, addr = start_server(checkpoint, "--views", "F,FL,FR", *sum((["--worker", a] for _, a in workers), []))
-    results: list = []  # (when it came, observation index, seed, chunk)
-    errors: list = []
-    stop_flag = threading.Event()
-
-    def client_loop(i: int) -> None:
-        with PolicyClient(addr, session_id=f"robot-{i}", timeout_s=10.0) as client:
-            n = 0
-            while not stop_flag.is_set():
-                j, seed = n % len(observations), 1000 * i + n
-                try:
-                    chunk = client.get_action(*observations[j], seed=seed)
-                    results.append((time.monotonic(), j, seed, chunk))
-                except PolicyError as exc:
-                    errors.append(exc)
-                n += 1
-
-    def moved_after(t0: float, what: str) -> tuple:
-        deadline = time.monotonic() + 60
-        while True:
-            for r in list(results):
-                if r[0] > t0 and any("moved to worker" in why for why in r[3].degraded_reasons):
-                    return r
-            assert time.monotonic() < deadline, f"no answer with moved views after the worker was {what}: {errors[:3]}"
-            time.sleep(0.05)
-
-    def gets_streams(address: str, more_than: int, what: str) -> None:
-        deadline = time.monotonic() + 60
-        while worker_info(address).streams <= more_than:
-            assert time.monotonic() < deadline, f"the {what} worker was not re-admitted"
-            time.sleep(0.05)
-
-    threads = [threading.Thread(target=client_loop, args=(i,)) for i in range(4)]
+    robots = Robots(addr, observations)
     try:
-        for t in threads:
-            t.start()
-        time.sleep(1.0)
-        t0 = time.monotonic()
-        workers[1][0].send_signal(signal.SIGSTOP)  # frozen: its requests miss a step deadline
-        frozen = moved_after(t0, "frozen")
-        workers[1][0].send_signal(signal.SIGCONT)
-        gets_streams(workers[1][1], worker_info(workers[1][1]).streams, "resumed")
-        t1 = time.monotonic()
-        workers[1][0].kill()  # kill -9: its streams break mid-request
-        killed = moved_after(t1, "killed")
-        workers[1] = start_worker(checkpoint, port=ports[1])
-        gets_streams(workers[1][1], 0, "restarted")  # a new process: nothing served yet
-        stop_flag.set()
-        for t in threads:
-            t.join(timeout=30)
+        with robots:
+            t0 = time.monotonic()
+            workers[1][0].send_signal(signal.SIGSTOP)  # frozen: its requests miss a step deadline
+            frozen = wait_for(lambda: robots.moved_after(t0), 60, "views moved off the frozen worker")
+            workers[1][0].send_signal(signal.SIGCONT)
+            served = worker_info(workers[1][1]).streams
+            wait_for(lambda: worker_info(workers[1][1]).streams > served, 60, "the resumed worker re-admitted")
+            t1 = time.monotonic()
+            workers[1][0].kill()  # kill -9: its streams break mid-request
+            killed = wait_for(lambda: robots.moved_after(t1), 60, "views moved off the killed worker")
+            workers[1] = start_worker(checkpoint, port=ports[1])
+            # a new process: nothing served yet
+            wait_for(lambda: worker_info(workers[1][1]).streams > 0, 60, "the restarted worker re-admitted")
         # a moved view computes what it would have: the same observation and seed, the same actions
         with PolicyClient(addr, session_id="check") as client:
-            for _, j, seed, chunk in (frozen, killed):
+            for _, _, j, seed, chunk in (frozen, killed):
                 again = client.get_action(*observations[j], seed=seed)
                 assert not again.degraded and again.views_used == chunk.views_used == ("F", "FL", "FR")
                 np.testing.assert_allclose(again.actions, chunk.actions, rtol=0, atol=1e-6)
     finally:
-        stop_flag.set()
-        for t in threads:
-            t.join(timeout=30)
         stop(server)
         for p, _ in workers:
-            if p.poll() is None:
-                p.send_signal(signal.SIGCONT)
             stop(p)
-    assert errors == []  # not one GetAction failed
-    assert len(results) > 20
+    assert robots.errors == []  # not one GetAction failed
+    assert len(robots.results) > 20
 
 
 def test_a_killed_replica_behind_a_balanced_address_costs_no_answer(checkpoint, observations):
@@ -220,40 +236,56 @@ def test_a_killed_replica_behind_a_balanced_address_costs_no_answer(checkpoint, 
     workers = [start_worker(checkpoint) for _ in range(2)]
     balanced = "ipv4:" + ",".join(a for _, a in workers)
     server, addr = start_server(checkpoint, "--views", "F,FL,FR", "--worker", balanced)
-    results: list = []
-    errors: list = []
-    stop_flag = threading.Event()
-
-    def client_loop(i: int) -> None:
-        with PolicyClient(addr, session_id=f"robot-{i}", timeout_s=10.0) as client:
-            n = 0
-            while not stop_flag.is_set():
-                try:
-                    results.append((time.monotonic(), client.get_action(*observations[n % len(observations)])))
-                except PolicyError as exc:
-                    errors.append(exc)
-                n += 1
-
-    threads = [threading.Thread(target=client_loop, args=(i,)) for i in range(4)]
+    robots = Robots(addr, observations)
     try:
-        for t in threads:
-            t.start()
-        time.sleep(1.0)
-        killed_at = time.monotonic()
-        workers[0][0].kill()
-        deadline = time.monotonic() + 60
-        # answers keep coming, whole, from the replica left
-        while sum(t > killed_at + 1.0 and len(r.views_used) == 3 for t, r in results) < 8:
-            assert time.monotonic() < deadline, f"no whole answers after the kill: {errors[:3]}"
-            time.sleep(0.05)
+        with robots:
+            killed_at = time.monotonic()
+            workers[0][0].kill()
+            # answers keep coming, whole, from the replica left
+            wait_for(
+                lambda: sum(len(a.chunk.views_used) == 3 for a in robots.sent_after(killed_at + 1.0)) >= 8,
+                60,
+                "whole answers after the kill",
+            )
     finally:
-        stop_flag.set()
-        for t in threads:
-            t.join(timeout=30)
         stop(server)
         for p, _ in workers:
             stop(p)
-    assert errors == []  # not one GetAction failed
+    assert robots.errors == []  # not one GetAction failed
+
+
+def test_a_frozen_replica_behind_a_balanced_address_is_left_after_a_keepalive(checkpoint, observations):
+    """Two workers behind one balanced address, four robots calling in a loop, one replica frozen
+    (SIGSTOP: its connection stays open and nothing answers, as from a hung host or behind a cut
+    network). The balancer would keep giving it streams, each costing its request a late step and
+    a move; the server's keepalive pings go unanswered, gRPC closes the connection and the balancer
+    leaves the replica: the answers are whole and not degraded again. Resumed, it gets streams again."""
+    workers = [start_worker(checkpoint) for _ in range(2)]
+    balanced = "ipv4:" + ",".join(a for _, a in workers)
+    server, addr = start_server(checkpoint, "--views", "F,FL,FR", "--worker", balanced, "--set", "worker_keepalive_s=1")
+    robots = Robots(addr, observations)
+    try:
+        with robots:
+            frozen_at = time.monotonic()
+            workers[0][0].send_signal(signal.SIGSTOP)
+            wait_for(
+                lambda: [a for a in list(robots.results) if a.came > frozen_at and a.chunk.degraded],
+                60,
+                "a request that met the frozen replica",
+            )
+            # a ping after 1 s without a read, its answer awaited 1 s: left within ~2 s of the freeze
+            left_by = frozen_at + 4.0
+            wait_for(lambda: len(robots.sent_after(left_by)) >= 16, 90, "answers after the keepalive")
+            after = robots.sent_after(left_by)
+            workers[0][0].send_signal(signal.SIGCONT)  # back: the balancer reconnects and uses it again
+            before = worker_info(workers[0][1]).streams  # (and more, from streams it held frozen)
+            wait_for(lambda: worker_info(workers[0][1]).streams > before + 30, 60, "the resumed replica given streams")
+    finally:
+        stop(server)
+        for p, _ in workers:
+            stop(p)
+    assert robots.errors == []
+    assert [a.chunk.degraded_reasons for a in after if a.chunk.degraded] == []
 
 
 def test_malformed_requests_are_refused_with_the_field_and_the_server_stays_up(checkpoint, observations):
