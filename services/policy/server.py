@@ -468,10 +468,10 @@ class RemoteDenoiser:
             self._drop(view, f"worker {s.worker.address}: the stream had ended")
             return None
         except grpc.aio.AioRpcError as exc:
-            # refused input is refused by every worker: not worth moving
+            # refused input is refused by every worker: not worth moving, and not the worker's fault
             refused = exc.code() == grpc.StatusCode.INVALID_ARGUMENT
             why = f"worker {s.worker.address}: {exc.code().name} {exc.details()}"
-            self._drop(view, why, movable=not refused)
+            self._drop(view, why, trip=not refused, movable=not refused)
             return None
         if reply is grpc.aio.EOF:
             self._drop(view, f"worker {s.worker.address} closed the stream")

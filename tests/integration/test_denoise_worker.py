@@ -3,8 +3,10 @@ its refusals (each with the right code, the worker still serving), and its token
 
 from __future__ import annotations
 
+import asyncio
 import os
 import threading
+import time
 from pathlib import Path
 
 import grpc
@@ -13,9 +15,10 @@ import pytest
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 from policy_processes import start_worker, stop
 
-from services.core.tensors import to_tensor
+from services.core.tensors import from_tensor, to_tensor
 from services.pb import policy_pb2, policy_pb2_grpc
 from services.policy.checkpoint import checkpoint_sha256, read_info
+from services.policy.server import RemoteDenoiser, WorkerPool
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -179,3 +182,34 @@ def test_a_worker_with_a_token_refuses_calls_without_it_and_leaves_health_open(t
         assert health.status == health_pb2.HealthCheckResponse.SERVING
     finally:
         stop(proc)
+
+
+def test_a_refused_step_drops_its_view_but_leaves_the_worker_in_the_pool(worker, tiny_checkpoint):
+    """The server's side of a refusal: a step the worker refuses (INVALID_ARGUMENT, the request's
+    fault: any worker would refuse it) drops the view from that request without moving it, and the
+    worker stays in the pool; the next request is served by it."""
+    obs = observation(tiny_checkpoint, 0, "F").observation
+    inputs = {"F": (np.asarray(from_tensor(obs.frames)), np.asarray(from_tensor(obs.state)))}
+    x = np.zeros((read_info(tiny_checkpoint)["model"]["pred_horizon"], 7), np.float32)
+
+    async def run() -> None:
+        pool = WorkerPool([worker], checkpoint_sha256(tiny_checkpoint))
+        await pool.start()
+        try:
+            deadline = time.monotonic() + 30
+            refused = RemoteDenoiser(pool, None)
+            await refused.open(inputs, False, deadline)
+            eps, _ = await refused.step(10**6, {"F": x}, deadline)
+            assert eps == {} and "INVALID_ARGUMENT" in refused.dropped["F"] and "timestep" in refused.dropped["F"]
+            assert await refused.move(deadline) == []  # not moved: every worker would refuse it
+            assert [w.address for w in pool.healthy] == [worker]
+            await refused.close()
+            served = RemoteDenoiser(pool, None)
+            await served.open(inputs, False, deadline)
+            eps, _ = await served.step(0, {"F": x}, deadline)
+            assert eps["F"].shape == x.shape and served.dropped == {}
+            await served.close()
+        finally:
+            await pool.close()
+
+    asyncio.run(run())
