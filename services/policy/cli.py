@@ -90,7 +90,15 @@ def _serve(args: argparse.Namespace) -> int:
     try:
         with LocalWorkers(cfg, cfg.workers if not cfg.in_process else 0, log_dir) as local:
             addresses = [*cfg.worker, *local.addresses]
-            return _run(lambda stop: serve_policy(cfg, stop, addresses, _announce))
+
+            async def serve(stop):
+                supervisor = asyncio.create_task(local.supervise(stop))  # a local worker that exits: restarted
+                try:
+                    return await serve_policy(cfg, stop, addresses, _announce)
+                finally:
+                    supervisor.cancel()
+
+            return _run(serve)
     except (RuntimeError, TimeoutError) as exc:
         return _error(exc, 1)
 

@@ -299,6 +299,9 @@ class WorkerPool:
             ("grpc.lb_policy_name", "round_robin"),
             ("grpc.max_receive_message_length", 16 << 20),
             ("grpc.max_send_message_length", 16 << 20),
+            # a worker back after a restart is reconnected within 5 s (grpc's default backoff
+            # grows to 2 minutes while it is down)
+            ("grpc.max_reconnect_backoff_ms", 5000),
             # A connection whose peer stopped answering (a frozen process, a host cut off: the
             # socket stays open) is closed after a ping goes unanswered, so the balancer leaves it.
             # The workers accept pings this often (worker.KEEPALIVE_MIN_PING_MS).
@@ -837,7 +840,8 @@ class BearerTokenInterceptor(grpc.aio.ServerInterceptor):
 
 class LocalWorkers:
     """Worker processes on loopback, started before any gRPC object exists in this process (never
-    fork after gRPC is initialised); each one's address comes from its ready line."""
+    fork after gRPC is initialised); each one's address comes from its ready line. ``supervise``
+    restarts one that exits (a crash, the OOM killer, kill -9) on the same address."""
 
     def __init__(self, cfg, n: int, log_dir: Path | None = None):
         self.cfg = cfg
@@ -846,34 +850,27 @@ class LocalWorkers:
         self.procs: list[Any] = []
         self.addresses: list[str] = []
 
-    def __enter__(self) -> LocalWorkers:
+    def _spawn(self, i: int, listen: str, stdout: int):
         import subprocess
         import sys
 
-        for i in range(self.n):
-            cmd = [
-                sys.executable,
-                "-m",
-                "services.policy",
-                "worker",
-                "--checkpoint",
-                str(self.cfg.checkpoint),
-                "--listen",
-                "127.0.0.1:0",
-                "--device",
-                self.cfg.device,
-                "--threads",
-                str(self.cfg.threads),
-            ]
-            env = child_env()  # the workers die with the server, however it dies
-            if self.cfg.token:
-                env["VIEWSCALE_TOKEN"] = self.cfg.token  # not on the command line (ps shows it)
-            err = open(self.log_dir / f"worker-{i}.log", "a") if self.log_dir else None
-            self.procs.append(
-                subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=err or subprocess.DEVNULL, text=True, env=env)
-            )
+        cmd = [sys.executable, "-m", "services.policy", "worker", "--checkpoint", str(self.cfg.checkpoint)]
+        cmd += ["--listen", listen, "--device", self.cfg.device, "--threads", str(self.cfg.threads)]
+        env = child_env()  # the workers die with the server, however it dies
+        if self.cfg.token:
+            env["VIEWSCALE_TOKEN"] = self.cfg.token  # not on the command line (ps shows it)
+        err = open(self.log_dir / f"worker-{i}.log", "a") if self.log_dir else None
+        try:
+            return subprocess.Popen(cmd, stdout=stdout, stderr=err or subprocess.DEVNULL, text=True, env=env)
+        finally:
             if err:
                 err.close()
+
+    def __enter__(self) -> LocalWorkers:
+        import subprocess
+
+        for i in range(self.n):
+            self.procs.append(self._spawn(i, "127.0.0.1:0", subprocess.PIPE))
         try:
             for i, p in enumerate(self.procs):
                 for line in p.stdout:  # "listening worker ..." then "ready worker <addr>"
@@ -886,6 +883,42 @@ class LocalWorkers:
             self.__exit__()
             raise
         return self
+
+    async def supervise(self, stop: asyncio.Event, period_s: float = 0.5, quick_exit_s: float = 30.0) -> None:
+        """Until ``stop``, restart a worker that exited, on its address: the pool's health check
+        re-admits it once its model is loaded. One that keeps exiting soon after its start waits
+        longer each time (1 s doubling to 60 s), so a worker that cannot start does not spin. (A
+        Ctrl-C reaches the workers too: stopping, the server restarts none.)"""
+        import subprocess
+
+        loop = asyncio.get_running_loop()
+        started = [time.monotonic()] * len(self.procs)
+        delay = [0.5] * len(self.procs)  # doubled at a quick exit: 1 s the first time
+        due: list[float | None] = [None] * len(self.procs)
+        while not stop.is_set():
+            await asyncio.sleep(period_s)
+            for i, p in enumerate(self.procs):
+                if stop.is_set():
+                    return
+                now = time.monotonic()
+                if due[i] is None and p.poll() is not None:
+                    delay[i] = min(2 * delay[i], 60.0) if now - started[i] < quick_exit_s else 1.0
+                    due[i] = now + delay[i]
+                    log.warning(
+                        "local worker %d (%s) exited with code %s: restarting it in %.0f s",
+                        i,
+                        self.addresses[i],
+                        p.returncode,
+                        delay[i],
+                    )
+                    if p.stdout:
+                        p.stdout.close()
+                if due[i] is not None and now >= due[i]:
+                    # forked off the loop: a moment, but not the loop's
+                    self.procs[i] = await loop.run_in_executor(
+                        None, self._spawn, i, self.addresses[i], subprocess.DEVNULL
+                    )
+                    started[i], due[i] = time.monotonic(), None
 
     def __exit__(self, *exc) -> None:
         for p in self.procs:

@@ -288,6 +288,48 @@ def test_a_frozen_replica_behind_a_balanced_address_is_left_after_a_keepalive(ch
     assert [a.chunk.degraded_reasons for a in after if a.chunk.degraded] == []
 
 
+def local_workers(server_pid: int) -> dict[int, list[str]]:
+    """The worker processes a server started: pid -> command line."""
+    # each thread's children (the server starts a worker again from a thread of its executor)
+    pids = [p for t in Path(f"/proc/{server_pid}/task").iterdir() for p in (t / "children").read_text().split()]
+    cmds = {int(p): Path(f"/proc/{p}/cmdline").read_text().split("\0") for p in pids}
+    return {p: c for p, c in cmds.items() if "worker" in c}
+
+
+def test_serve_restarts_a_local_worker_that_dies_on_its_address(checkpoint, observations):
+    """`viewscale serve --workers 2`, four robots calling in a loop, one worker process killed
+    (kill -9, as the OOM killer would): its views move meanwhile, not one GetAction fails, and the
+    server starts it again on its address, where it serves again."""
+    server, addr = start_server(checkpoint, "--views", "F,FL,FR", "--workers", "2")
+    robots = Robots(addr, observations)
+    try:
+        with robots:
+            first = local_workers(server.pid)
+            assert len(first) == 2
+            victim = min(first)
+            os.kill(victim, signal.SIGKILL)
+            again: dict = {}
+            again = wait_for(
+                lambda: {p: c for p, c in local_workers(server.pid).items() if p not in first}, 60, "a new worker"
+            )
+            [cmd] = again.values()
+            address = cmd[cmd.index("--listen") + 1]  # the dead one's: 127.0.0.1:<its port>
+            assert not address.endswith(":0")
+
+            def served() -> int:
+                try:
+                    return worker_info(address).streams
+                except grpc.RpcError:  # not listening yet
+                    return 0
+
+            wait_for(lambda: served() > 0, 60, "the restarted worker given views")
+    finally:
+        stop(server)
+    assert robots.errors == []
+    # stopped, the server takes its workers with it, the restarted one too
+    wait_for(lambda: not any(Path(f"/proc/{p}").exists() for p in [*first, *again]), 30, "the workers gone")
+
+
 def test_malformed_requests_are_refused_with_the_field_and_the_server_stays_up(checkpoint, observations):
     proc, addr = start_server(checkpoint, "--views", "F,FL", "--in-process", "--set", "max_message_mb=4")
     try:
