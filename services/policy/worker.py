@@ -510,7 +510,7 @@ async def serve_worker(cfg, stop: asyncio.Event, announce=print) -> int:
             ("grpc.max_send_message_length", size),
             # the policy server's keepalive pings, idle or not (grpc's default would refuse them)
             ("grpc.keepalive_permit_without_calls", 1),
-            ("grpc.http2.min_recv_ping_interval_without_data_ms", KEEPALIVE_MIN_PING_MS),
+            ("grpc.http2.min_ping_interval_without_data_ms", KEEPALIVE_MIN_PING_MS),
         ],
         maximum_concurrent_rpcs=cfg.max_streams,
     )

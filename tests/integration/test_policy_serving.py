@@ -265,6 +265,7 @@ def test_a_frozen_replica_behind_a_balanced_address_is_left_after_a_keepalive(ch
     server, addr = start_server(checkpoint, "--views", "F,FL,FR", "--worker", balanced, "--set", "worker_keepalive_s=1")
     robots = Robots(addr, observations)
     try:
+        time.sleep(4.0)  # idle: pings with no data in between, which the workers must accept
         with robots:
             frozen_at = time.monotonic()
             workers[0][0].send_signal(signal.SIGSTOP)
@@ -281,11 +282,14 @@ def test_a_frozen_replica_behind_a_balanced_address_is_left_after_a_keepalive(ch
             before = worker_info(workers[0][1]).streams  # (and more, from streams it held frozen)
             wait_for(lambda: worker_info(workers[0][1]).streams > before + 30, 60, "the resumed replica given streams")
     finally:
+        server_log = server.log_path.read_text()
         stop(server)
         for p, _ in workers:
             stop(p)
     assert robots.errors == []
     assert [a.chunk.degraded_reasons for a in after if a.chunk.degraded] == []
+    # a worker refusing the pings (GOAWAY too_many_pings) would drop the server's connections to it
+    assert "too_many_pings" not in server_log
 
 
 def local_workers(server_pid: int) -> dict[int, list[str]]:
