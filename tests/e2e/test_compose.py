@@ -178,7 +178,8 @@ def test_the_real_profile_adds_the_hardware_services_and_leaves_the_sim_session_
 def test_the_serve_profile_runs_a_server_over_every_worker_replica(engine):
     """`docker compose --profile serve up --scale policy-worker=N policy policy-worker`: the server
     reaches every worker replica through one DNS name (gRPC round-robin), both read the checkpoint
-    volume, the image has the `train` extra, and only the server's port is published, on loopback."""
+    volume, the image has the `train` extra, only the server's port is published, on loopback, and
+    docker starts a server or worker that dies again."""
     import json
 
     proc = run(["bash", str(SCRIPTS / "ensure-compose.sh")], timeout=900)
@@ -191,6 +192,7 @@ def test_the_serve_profile_runs_a_server_over_every_worker_replica(engine):
     assert "dns:///policy-worker:7001" in server["command"] and "--checkpoint" in worker["command"]
     for svc in (server, worker):
         assert svc["build"]["args"]["EXTRAS"] == "train"
+        assert svc["restart"] == "unless-stopped"
         assert any(v["source"] == "/srv/ckpt" and v["target"] == "/checkpoint" for v in svc["volumes"])
     [port] = server["ports"]
     assert port["host_ip"] == "127.0.0.1" and port["target"] == 50051
