@@ -2,11 +2,16 @@
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Literal, get_args
 
 from pydantic import Field, model_validator
 
 from services.core.config import Frozen
+
+# how a request's views are put on workers (WorkerPool.place); `viewscale serve --placement` lists
+# them again, so that building the CLI's parser does not import this module
+Placement = Literal["auto", "pack", "spread"]
+PLACEMENTS: tuple[str, ...] = get_args(Placement)
 
 
 class TlsConfig(Frozen):
@@ -50,7 +55,7 @@ class ServerConfig(Frozen):
     in_process: bool = False  # compute every view in this process even when workers are given
     # a request's views on workers: pack (all on one: one forward pass), spread (one each: passes
     # side by side), auto (pack on CPU workers, spread on GPUs)
-    placement: Literal["auto", "pack", "spread"] = "auto"
+    placement: Placement = "auto"
     device: str = "cpu"  # device of the in-process model and of local workers
     threads: int = Field(1, ge=1)  # intra-op threads of each model
     token: str | None = None  # bearer token: clients (and this server to its workers) present it

@@ -61,6 +61,7 @@ from services.policy.aggregation import (
     view_transform,
 )
 from services.policy.checkpoint import checkpoint_sha256, model_id, read_info
+from services.policy.config import PLACEMENTS
 from services.policy.model.diffusion import make_inference_scheduler
 from services.policy.model.policy import NoiseConfig
 from services.policy.observation import CameraSpec, InvalidRequest, Parsed, PolicySpec, model_inputs, parse
@@ -77,7 +78,6 @@ log = logging.getLogger(__name__)
 
 POLICY_SERVICE = "viewscale.v1.Policy"
 DEFAULT_TIMEOUT_S = 5.0  # a GetAction without a deadline gets this one
-PLACEMENTS = ("auto", "pack", "spread")  # how a request's views are put on workers (WorkerPool.place)
 
 
 class Unavailable(RuntimeError):
