@@ -224,7 +224,7 @@ class WorkerInfoRequest(_message.Message):
     def __init__(self) -> None: ...
 
 class WorkerInfo(_message.Message):
-    __slots__ = ("checkpoint_sha256", "model_id", "device", "threads", "max_batch", "streams", "passes", "batched_items", "max_streams")
+    __slots__ = ("checkpoint_sha256", "model_id", "device", "threads", "max_batch", "streams", "passes", "batched_items", "max_streams", "machine", "cores")
     CHECKPOINT_SHA256_FIELD_NUMBER: _ClassVar[int]
     MODEL_ID_FIELD_NUMBER: _ClassVar[int]
     DEVICE_FIELD_NUMBER: _ClassVar[int]
@@ -234,6 +234,8 @@ class WorkerInfo(_message.Message):
     PASSES_FIELD_NUMBER: _ClassVar[int]
     BATCHED_ITEMS_FIELD_NUMBER: _ClassVar[int]
     MAX_STREAMS_FIELD_NUMBER: _ClassVar[int]
+    MACHINE_FIELD_NUMBER: _ClassVar[int]
+    CORES_FIELD_NUMBER: _ClassVar[int]
     checkpoint_sha256: str
     model_id: str
     device: str
@@ -243,4 +245,6 @@ class WorkerInfo(_message.Message):
     passes: int
     batched_items: int
     max_streams: int
-    def __init__(self, checkpoint_sha256: _Optional[str] = ..., model_id: _Optional[str] = ..., device: _Optional[str] = ..., threads: _Optional[int] = ..., max_batch: _Optional[int] = ..., streams: _Optional[int] = ..., passes: _Optional[int] = ..., batched_items: _Optional[int] = ..., max_streams: _Optional[int] = ...) -> None: ...
+    machine: str
+    cores: _containers.RepeatedScalarFieldContainer[int]
+    def __init__(self, checkpoint_sha256: _Optional[str] = ..., model_id: _Optional[str] = ..., device: _Optional[str] = ..., threads: _Optional[int] = ..., max_batch: _Optional[int] = ..., streams: _Optional[int] = ..., passes: _Optional[int] = ..., batched_items: _Optional[int] = ..., max_streams: _Optional[int] = ..., machine: _Optional[str] = ..., cores: _Optional[_Iterable[int]] = ...) -> None: ...

@@ -54,7 +54,7 @@ class ServerConfig(Frozen):
     worker: list[str] = Field(default_factory=list)  # addresses of running workers (host:port, or dns:///name:port)
     in_process: bool = False  # compute every view in this process even when workers are given
     # a request's views on workers: pack (all on one: one forward pass), spread (one each: passes
-    # side by side), auto (pack on CPU workers, spread on GPUs)
+    # side by side), auto (spread over GPUs and machines, packed on the CPU workers that share cores)
     placement: Placement = "auto"
     device: str = "cpu"  # device of the in-process model and of local workers
     threads: int = Field(1, ge=1)  # intra-op threads of each model

@@ -254,6 +254,26 @@ class WorkerHandle:
     streams: int = 0  # open streams (for spreading views)
     balanced: bool = False  # gRPC may spread its streams over several replicas (may_balance)
     device: str = ""  # its model's device (WorkerInfo), once admitted
+    machine: str = ""  # the machine it runs on (WorkerInfo: the kernel's boot id), once admitted
+    cores: frozenset[int] = frozenset()  # the CPU cores it may run on (WorkerInfo), once admitted
+
+    def competes_with(self, other: WorkerHandle) -> bool:
+        """Whether the two compute on the same thing: CPU workers on one machine whose cores
+        overlap (or that did not say which). A GPU worker competes with none (a GPU each)."""
+        if self.device != "cpu" or other.device != "cpu" or self.machine != other.machine:
+            return False
+        return not (self.cores and other.cores) or bool(self.cores & other.cores)
+
+
+def describe_cores(cores: frozenset[int]) -> str:
+    """{0, 1, 2, 5} -> '0-2,5'."""
+    runs: list[list[int]] = []
+    for c in sorted(cores):
+        if runs and c == runs[-1][-1] + 1:
+            runs[-1].append(c)
+        else:
+            runs.append([c])
+    return ",".join(f"{r[0]}-{r[-1]}" if len(r) > 1 else str(r[0]) for r in runs)
 
 
 def may_balance(address: str) -> bool:
@@ -347,8 +367,12 @@ class WorkerPool:
                 log.warning("worker %s left: %s", w.address, reason)
             w.healthy, w.reason = False, reason or "unreachable"
             return
+        w.machine, w.cores = info.machine, frozenset(info.cores)
         if not w.healthy:
-            log.info("worker %s admitted (%s)", w.address, info.device)
+            where = info.device
+            if info.device == "cpu" and info.cores:
+                where += f" cores {describe_cores(w.cores)} of machine {info.machine[:8] or '?'}"
+            log.info("worker %s admitted (%s)", w.address, where)
             self._changed.set()
         w.healthy, w.reason, w.device = True, "", info.device
 
@@ -370,26 +394,53 @@ class WorkerPool:
     def healthy(self) -> list[WorkerHandle]:
         return [w for w in self.workers if w.healthy]
 
-    def pick(self, exclude: set[str] = frozenset()) -> WorkerHandle | None:
-        """The healthy worker with the fewest open streams (ties: list order)."""
-        ok = [w for w in self.healthy if w.address not in exclude] or self.healthy
-        return min(ok, key=lambda w: w.streams) if ok else None
+    def units(self) -> list[list[WorkerHandle]]:
+        """The healthy workers, grouped by what they compute on (list order kept): the views a
+        request puts on one group go to one worker of it, and the groups compute side by side.
+
+        ``pack``: one group; ``spread``: a group per worker; ``auto``: a group per GPU worker and
+        per set of CPU workers that compete for cores (one machine, overlapping cores: on one
+        machine, passes of several workers would only take turns on the same cores).
+        """
+        healthy = self.healthy
+        if self.placement == "pack":
+            return [healthy] if healthy else []
+        if self.placement == "spread":
+            return [[w] for w in healthy]
+        units: list[list[WorkerHandle]] = []
+        for w in healthy:
+            joined = [u for u in units if any(w.competes_with(o) for o in u)]
+            units = [u for u in units if u not in joined]
+            units.append([x for u in joined for x in u] + [w])
+        order = {id(w): i for i, w in enumerate(healthy)}
+        for u in units:
+            u.sort(key=lambda w: order[id(w)])
+        return sorted(units, key=lambda u: order[id(u[0])])
 
     def place(self, views: list[str]) -> dict[str, WorkerHandle]:
         """A worker for each view of a request (views left out: no healthy worker).
 
-        ``pack``: all on the least-loaded worker (one forward pass for all of them per step);
-        ``spread``: each on the least-loaded worker not yet given one of them (passes side by side);
-        ``auto``: pack on CPU workers, whose passes would compete for the same cores, spread on
-        GPUs (docs/serving.md has the measurements)."""
-        pack = self.placement == "pack" or (self.placement == "auto" and all(w.device == "cpu" for w in self.healthy))
+        Each view goes to the group (``units``) not yet given one of the request's views whose
+        least-loaded worker has the fewest open streams, or, once every group has one, to the
+        least-loaded worker the request already uses; within a group, a request's views share
+        one worker, which computes them in one forward pass per step. So ``pack`` puts them all
+        on the least-loaded worker, ``spread`` each on the least-loaded worker not yet given one,
+        and ``auto`` spreads them over GPUs and machines and packs them on a machine's CPU
+        (docs/serving.md has the measurements).
+        """
+        units = self.units()
+        chosen: dict[int, WorkerHandle] = {}  # group -> the worker this request uses there
         out: dict[str, WorkerHandle] = {}
-        used: set[str] = set()
         for v in views:
-            w = out[views[0]] if pack and out else self.pick(exclude=used)
-            if w is None:
-                break
-            used.add(w.address)
+            fresh = [i for i in range(len(units)) if i not in chosen]
+            if fresh:
+                i = min(fresh, key=lambda i: min(w.streams for w in units[i]))
+                chosen[i] = min(units[i], key=lambda w: w.streams)
+            elif chosen:
+                i = min(chosen, key=lambda i: chosen[i].streams)
+            else:
+                break  # no healthy worker
+            w = chosen[i]
             w.streams += 1
             out[v] = w
         return out

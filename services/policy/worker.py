@@ -64,6 +64,26 @@ REPLICA_KEY = "viewscale-replica"
 KEEPALIVE_MIN_PING_MS = 500
 
 
+BOOT_ID = Path("/proc/sys/kernel/random/boot_id")
+
+
+def machine_id() -> str:
+    """The running kernel's boot id: one value for every process and container on a machine
+    (containers share the kernel; their host names differ), another on another host or VM. The
+    host name where the kernel does not say (not Linux)."""
+    try:
+        return BOOT_ID.read_text().strip() or socket.gethostname()
+    except OSError:
+        return socket.gethostname()
+
+
+def allowed_cores() -> list[int]:
+    """The CPU cores this process may run on (taskset, a container's cpuset), all where unknown."""
+    if hasattr(os, "sched_getaffinity"):
+        return sorted(os.sched_getaffinity(0))
+    return list(range(os.cpu_count() or 1))
+
+
 @dataclass
 class _Job:
     kind: str  # "encode" or "step"
@@ -336,6 +356,8 @@ class DenoiseWorkerService(policy_pb2_grpc.DenoiseWorkerServicer):
         self.group_wait_s = group_wait_s
         self.streams = 0  # Denoise streams opened so far
         self.replica = f"{socket.gethostname()}/{os.getpid()}/{uuid.uuid4().hex[:8]}"
+        self.machine = machine_id()  # what it computes on (WorkerInfo): the server's placement auto
+        self.cores = allowed_cores()
         self._count = threading.Lock()
         self._groups: dict[str, ViewGroup] = {}
 
@@ -370,6 +392,8 @@ class DenoiseWorkerService(policy_pb2_grpc.DenoiseWorkerServicer):
             passes=e.passes,
             batched_items=e.batched_items,
             max_streams=self.max_streams,
+            machine=self.machine,
+            cores=self.cores,
         )
 
     def Denoise(self, request_iterator, context):

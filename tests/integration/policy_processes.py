@@ -16,14 +16,15 @@ from services.pb import policy_pb2, policy_pb2_grpc
 ROOT = Path(__file__).resolve().parents[2]
 
 
-def start(args: list[str], kind: str, env=None) -> tuple[subprocess.Popen, str]:
-    """``python -m services.policy ARGS``, once it prints ``ready KIND ADDRESS``: (process, address).
+def start(args: list[str], kind: str, env=None, prefix: tuple[str, ...] = ()) -> tuple[subprocess.Popen, str]:
+    """``[PREFIX] python -m services.policy ARGS``, once it prints ``ready KIND ADDRESS``: (process,
+    address). ``prefix``: a command it runs under (``taskset -c 1``).
 
     Its log goes to a file (``proc.log_path``), never to a pipe nobody reads: a full pipe would
     block the process at its next log line."""
     log = tempfile.NamedTemporaryFile("w+", prefix=f"vs-{kind}-", suffix=".log", delete=False)
     proc = subprocess.Popen(
-        [sys.executable, "-m", "services.policy", *args],
+        [*prefix, sys.executable, "-m", "services.policy", *args],
         cwd=ROOT,
         stdout=subprocess.PIPE,
         stderr=log,
@@ -39,8 +40,10 @@ def start(args: list[str], kind: str, env=None) -> tuple[subprocess.Popen, str]:
     raise AssertionError(f"{kind} did not start: {proc.log_path.read_text()[-3000:]}")
 
 
-def start_worker(ckpt: Path, *args: str, port: int = 0, env=None) -> tuple[subprocess.Popen, str]:
-    return start(["worker", "--checkpoint", str(ckpt), "--listen", f"127.0.0.1:{port}", *args], "worker", env)
+def start_worker(
+    ckpt: Path, *args: str, port: int = 0, env=None, prefix: tuple[str, ...] = ()
+) -> tuple[subprocess.Popen, str]:
+    return start(["worker", "--checkpoint", str(ckpt), "--listen", f"127.0.0.1:{port}", *args], "worker", env, prefix)
 
 
 def start_server(ckpt: Path, *args: str, env=None) -> tuple[subprocess.Popen, str]:

@@ -139,6 +139,31 @@ def test_fan_out_to_workers_gives_the_in_process_actions(checkpoint, observation
             stop(p)
 
 
+@pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="needs two CPU cores to pin workers to")
+def test_auto_placement_spreads_views_over_workers_on_cores_of_their_own(checkpoint, observations):
+    """Three CPU workers on one machine, pinned (taskset): the first and third to one core, the
+    second to another. Each reports its machine and cores; placement auto gives a request's views
+    to the two that do not compete -- two views on the first worker (one pass), one on the second
+    -- and none to the third, which would take turns with the first on its core."""
+    a, b = sorted(os.sched_getaffinity(0))[:2]
+    workers = [start_worker(checkpoint, prefix=("taskset", "-c", str(c))) for c in (a, b, a)]
+    server, addr = start_server(checkpoint, "--views", "F,FL,FR", *sum((["--worker", w] for _, w in workers), []))
+    try:
+        infos = [worker_info(w) for _, w in workers]
+        assert [list(i.cores) for i in infos] == [[a], [b], [a]]
+        boot_id = Path("/proc/sys/kernel/random/boot_id").read_text().strip()
+        assert {i.machine for i in infos} == {boot_id}
+        with PolicyClient(addr) as client:
+            for i, (f, s) in enumerate(observations[:2]):
+                chunk = client.get_action(f, s, seed=i)
+                assert chunk.views_used == ("F", "FL", "FR") and not chunk.degraded
+        assert [worker_info(w).streams for _, w in workers] == [4, 2, 0]
+    finally:
+        stop(server)
+        for p, _ in workers:
+            stop(p)
+
+
 class Answer(NamedTuple):
     sent: float  # when the request went (time.monotonic)
     came: float  # when its answer came

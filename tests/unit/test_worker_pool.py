@@ -40,16 +40,20 @@ def test_a_worker_address_with_commas_stays_one_address():
     assert cfg.worker == [many, "10.0.0.5:7001"]
 
 
-def _pool(placement: str, devices: list[str], streams: list[int]):
-    """A pool of admitted workers (channels to nowhere: placing opens no call)."""
+def _pool(placement: str, devices: list[str], streams: list[int], machines=None, cores=None):
+    """A pool of admitted workers (channels to nowhere: placing opens no call); by default all on
+    one machine with the same two cores."""
     import asyncio
 
     from services.policy.server import WorkerPool
 
+    machines = machines or ["m"] * len(devices)
+    cores = cores or [{0, 1}] * len(devices)
+
     async def make():
         pool = WorkerPool([f"127.0.0.1:{7001 + i}" for i in range(len(devices))], "sha", placement=placement)
-        for w, dev, n in zip(pool.workers, devices, streams):
-            w.healthy, w.device, w.streams = True, dev, n
+        for w, dev, n, m, c in zip(pool.workers, devices, streams, machines, cores):
+            w.healthy, w.device, w.streams, w.machine, w.cores = True, dev, n, m, frozenset(c)
         return pool
 
     return asyncio.run(make())
@@ -79,6 +83,32 @@ def test_auto_packs_on_cpu_workers_and_spreads_on_gpus():
     assert len(set(_where(gpus.place(["F", "FL", "FR"])).values())) == 3
     mixed = _pool("auto", ["cpu", "cuda:0"], [0, 0])
     assert len(set(_where(mixed.place(["F", "FL"])).values())) == 2
+
+
+def test_auto_spreads_over_machines_and_disjoint_cores_and_packs_where_cores_are_shared():
+    # three CPU workers on three machines: a view each
+    apart = _pool("auto", ["cpu"] * 3, [0] * 3, machines=["a", "b", "c"])
+    assert _where(apart.place(["F", "FL", "FR"])) == {"F": 0, "FL": 1, "FR": 2}
+    # one machine, pinned to cores of their own (taskset, cpusets): a view each
+    pinned = _pool("auto", ["cpu"] * 2, [0] * 2, cores=[{0, 1}, {2, 3}])
+    assert _where(pinned.place(["F", "FL"])) == {"F": 0, "FL": 1}
+    # overlapping cores compete: 0 and 1 share core 1, 1 and 2 share core 2 -- one group of three
+    chain = _pool("auto", ["cpu"] * 3, [0] * 3, cores=[{0, 1}, {1, 2}, {2, 3}])
+    assert len(chain.units()) == 1 and set(_where(chain.place(["F", "FL", "FR"])).values()) == {0}
+    # a worker that did not say which cores (an empty set) competes with every CPU worker there
+    unsaid = _pool("auto", ["cpu"] * 2, [0] * 2, cores=[set(), {3}])
+    assert len(unsaid.units()) == 1
+    # two groups, three views: 0 and 2 compete (core 0), 1 is alone; the third view joins the
+    # least-loaded worker the request uses, and worker 2 gets none (it would take turns with 0)
+    mixed = _pool("auto", ["cpu"] * 3, [0] * 3, cores=[{0}, {1}, {0}])
+    assert [[int(w.address[-1]) - 1 for w in u] for u in mixed.units()] == [[0, 2], [1]]
+    assert _where(mixed.place(["F", "FL", "FR"])) == {"F": 0, "FL": 1, "FR": 0}
+    # a loaded worker in a group: the group's least-loaded one is used
+    loaded = _pool("auto", ["cpu"] * 3, [5, 0, 0], cores=[{0}, {1}, {0}])
+    assert _where(loaded.place(["F", "FL"])) == {"F": 2, "FL": 1}
+    # a GPU beside a machine's CPU workers: the GPU is a group of its own
+    gpu = _pool("auto", ["cpu", "cpu", "cuda:0"], [0] * 3)
+    assert _where(gpu.place(["F", "FL", "FR"])) == {"F": 0, "FL": 2, "FR": 0}
 
 
 def test_no_healthy_worker_places_nothing_and_a_bad_placement_is_refused():
