@@ -27,6 +27,7 @@ import numpy as np
 from services.core.tensors import encode_jpeg, to_tensor
 from services.pb import policy_pb2, policy_pb2_grpc
 from services.policy import POLICY_PROTO_VERSION
+from services.policy.transport import keepalive_channel_options
 
 Image = bytes | np.ndarray  # JPEG bytes, or (H, W, 3) uint8 RGB
 
@@ -80,7 +81,8 @@ def _frame(image: Image, stamp_ns: int, quality: int) -> policy_pb2.Frame:
 
 class PolicyClient:
     """One connection to a policy server, one session (``session_id``: one robot), reset on connect.
-    Thread-safe for one call at a time per session."""
+    Thread-safe for one call at a time per session. ``keepalive_s``: ping the server this often and
+    leave a connection whose ping goes unanswered as long (0: never; docs/serving.md)."""
 
     def __init__(
         self,
@@ -93,6 +95,7 @@ class PolicyClient:
         connect_timeout_s: float = 30.0,
         jpeg_quality: int = 90,
         max_message_mb: int = 16,
+        keepalive_s: float = 5.0,
     ):
         self.address = address
         self.session_id = session_id
@@ -103,8 +106,13 @@ class PolicyClient:
         options = [
             ("grpc.max_receive_message_length", size),
             ("grpc.max_send_message_length", size),
-            ("grpc.enable_retries", 0),
-        ]  # a late chunk is worthless: never retried blindly
+            ("grpc.enable_retries", 0),  # a late chunk is worthless: never retried blindly
+            # a server that stopped answering with the connection open (frozen, its host gone, a
+            # NAT that forgot an idle robot) is left after an unanswered ping, and the channel
+            # connects again -- to another of the address's servers, or to this one once back --
+            # rather than every GetAction running into the dead connection to its deadline
+            *keepalive_channel_options(keepalive_s),
+        ]
         self.channel = (
             grpc.secure_channel(address, grpc.ssl_channel_credentials(tls_ca), options=options)
             if tls_ca is not None

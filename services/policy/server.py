@@ -65,6 +65,7 @@ from services.policy.config import PLACEMENTS
 from services.policy.model.diffusion import make_inference_scheduler
 from services.policy.model.policy import NoiseConfig
 from services.policy.observation import CameraSpec, InvalidRequest, Parsed, PolicySpec, model_inputs, parse
+from services.policy.transport import keepalive_channel_options, keepalive_server_options
 from services.policy.worker import (
     OPEN_METHODS,
     REPLICA_KEY,
@@ -324,12 +325,7 @@ class WorkerPool:
             ("grpc.max_reconnect_backoff_ms", 5000),
             # A connection whose peer stopped answering (a frozen process, a host cut off: the
             # socket stays open) is closed after a ping goes unanswered, so the balancer leaves it.
-            # The workers accept pings this often (worker.KEEPALIVE_MIN_PING_MS).
-            ("grpc.keepalive_time_ms", int(keepalive_s * 1e3)),
-            ("grpc.keepalive_timeout_ms", int(keepalive_s * 1e3)),
-            ("grpc.http2.ping_timeout_ms", int(keepalive_s * 1e3)),  # what closes it in grpc 1.85
-            ("grpc.keepalive_permit_without_calls", 1),
-            ("grpc.http2.max_pings_without_data", 0),
+            *keepalive_channel_options(keepalive_s),
         ]
         for addr in addresses:
             ch = (
@@ -1026,7 +1022,11 @@ async def serve_policy(cfg, stop: asyncio.Event, worker_addresses: list[str], an
     size = cfg.max_message_mb << 20
     server = grpc.aio.server(
         interceptors=interceptors,
-        options=[("grpc.max_receive_message_length", size), ("grpc.max_send_message_length", size)],
+        options=[
+            ("grpc.max_receive_message_length", size),
+            ("grpc.max_send_message_length", size),
+            *keepalive_server_options(),  # the robots' pings (PolicyClient keepalive_s)
+        ],
     )
     policy_pb2_grpc.add_PolicyServicer_to_server(service, server)
     health = add_health_and_reflection(server, [POLICY_SERVICE])

@@ -52,6 +52,7 @@ from grpc_reflection.v1alpha import reflection
 from services.core.tensors import from_tensor, to_tensor
 from services.pb import policy_pb2, policy_pb2_grpc
 from services.policy.checkpoint import LoadedPolicy, checkpoint_sha256, load_policy, model_id
+from services.policy.transport import keepalive_server_options
 
 log = logging.getLogger(__name__)
 
@@ -60,8 +61,6 @@ WORKER_SERVICE = "viewscale.v1.DenoiseWorker"
 # gRPC balances over several replicas (a DNS name), the server learns from it which of a
 # request's views share a replica, and groups only those.
 REPLICA_KEY = "viewscale-replica"
-# the most often a worker accepts keepalive pings (the server pings every worker_keepalive_s >= 1 s)
-KEEPALIVE_MIN_PING_MS = 500
 
 
 BOOT_ID = Path("/proc/sys/kernel/random/boot_id")
@@ -532,9 +531,7 @@ async def serve_worker(cfg, stop: asyncio.Event, announce=print) -> int:
         options=[
             ("grpc.max_receive_message_length", size),
             ("grpc.max_send_message_length", size),
-            # the policy server's keepalive pings, idle or not (grpc's default would refuse them)
-            ("grpc.keepalive_permit_without_calls", 1),
-            ("grpc.http2.min_ping_interval_without_data_ms", KEEPALIVE_MIN_PING_MS),
+            *keepalive_server_options(),  # the policy server's pings (services.policy.transport)
         ],
         maximum_concurrent_rpcs=cfg.max_streams,
     )

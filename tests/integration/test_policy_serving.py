@@ -512,6 +512,56 @@ def test_a_chunk_from_another_checkpoint_is_refused_after_a_restart(checkpoint, 
         stop(proc)
 
 
+def _has_session(address: str, session_id: str) -> bool:
+    """Whether the policy server at ``address`` holds the session (asking ends it)."""
+    with grpc.insecure_channel(address) as ch:
+        reset = policy_pb2_grpc.PolicyStub(ch).Reset(policy_pb2.ResetRequest(session_id=session_id), timeout=10)
+        return reset.existed
+
+
+def test_a_robot_leaves_a_frozen_policy_server_after_a_keepalive(checkpoint, observations):
+    """Two policy servers behind one address (as a DNS name of two replicas). The robot's client
+    pings every 0.5 s: idle for 5 s, its connection stays up (the server accepts the pings; grpc's
+    default would answer them with GOAWAY too_many_pings). Then the server it is connected to
+    freezes (SIGSTOP: the connection stays open and nothing answers, as from a host gone or behind
+    a NAT that forgot the connection): after an unanswered ping the client leaves it, and the other
+    server answers. Without keepalive every GetAction ran into the frozen connection to its deadline
+    (still so 40 s on, in a trial run)."""
+    servers = [start_server(checkpoint, "--views", "F", "--in-process") for _ in range(2)]
+    frames, states = observations[3]
+    frames = {"F": frames["F"]}
+    seen: list[grpc.ChannelConnectivity] = []
+    try:
+        with PolicyClient("ipv4:" + ",".join(a for _, a in servers), keepalive_s=0.5, timeout_s=2.0) as client:
+            client.get_action(frames, states, seed=1)
+            client.channel.subscribe(seen.append)
+            time.sleep(5.0)  # idle: ten pings (grpc's default answered the sixth with GOAWAY)
+            assert seen and set(seen) == {grpc.ChannelConnectivity.READY}, seen
+            # the server it reached holds its session (asking ends it: the next answer starts one again)
+            on = [i for i, (_, a) in enumerate(servers) if _has_session(a, "robot")]
+            assert len(on) == 1
+            frozen, other = servers[on[0]], servers[1 - on[0]]
+            frozen[0].send_signal(signal.SIGSTOP)
+            failed: list[PolicyError] = []
+
+            def answered() -> ActionChunk | None:
+                try:
+                    return client.get_action(frames, states, seed=1)
+                except PolicyError as exc:
+                    failed.append(exc)
+                    return None
+
+            chunk = wait_for(answered, 30, "an answer from the server that is not frozen")
+            assert chunk.views_used == ("F",) and not chunk.degraded
+            assert _has_session(other[1], "robot")  # answered there
+            # the calls that ran into the frozen connection: late, or cut when the ping went unanswered
+            assert all(e.code in (grpc.StatusCode.DEADLINE_EXCEEDED, grpc.StatusCode.UNAVAILABLE) for e in failed)
+            client.channel.unsubscribe(seen.append)
+    finally:
+        for p, _ in servers:
+            stop(p)
+
+
 def test_health_is_not_serving_until_a_worker_is_ready(checkpoint):
     port = free_tcp_port()
     proc = subprocess.Popen(

@@ -1,0 +1,39 @@
+"""gRPC settings shared by the robot's client, the policy server and its workers (grpc only: the
+client imports this, and never torch).
+
+Keepalive: a caller pings its connection every ``keepalive_s`` and closes it when a ping goes
+unanswered as long, so that a peer that stopped answering with the socket still open -- a frozen
+process, a host that died without closing, a NAT or firewall that forgot an idle connection -- is
+left in seconds and the channel connects again (to the address's other servers, or to the same one
+once back) instead of sending every call into it until TCP gives up (15 minutes on Linux). The
+servers accept pings this often, idle or not (grpc's default would answer them with GOAWAY
+``too_many_pings`` and drop the connection).
+"""
+
+from __future__ import annotations
+
+# the most often a server accepts keepalive pings (callers ping every >= 1 s)
+KEEPALIVE_MIN_PING_MS = 500
+
+
+def keepalive_channel_options(keepalive_s: float) -> list[tuple[str, int]]:
+    """Channel options: ping every ``keepalive_s``, idle or not; close the connection when a ping
+    is unanswered for as long. Empty for 0 (no pings)."""
+    if keepalive_s <= 0:
+        return []
+    ms = int(keepalive_s * 1e3)
+    return [
+        ("grpc.keepalive_time_ms", ms),
+        ("grpc.keepalive_timeout_ms", ms),
+        ("grpc.http2.ping_timeout_ms", ms),  # what closes the connection in grpc 1.85
+        ("grpc.keepalive_permit_without_calls", 1),
+        ("grpc.http2.max_pings_without_data", 0),
+    ]
+
+
+def keepalive_server_options() -> list[tuple[str, int]]:
+    """Server options: accept the callers' pings (every >= KEEPALIVE_MIN_PING_MS), idle or not."""
+    return [
+        ("grpc.keepalive_permit_without_calls", 1),
+        ("grpc.http2.min_ping_interval_without_data_ms", KEEPALIVE_MIN_PING_MS),
+    ]
