@@ -31,7 +31,7 @@ class CameraInfo(_message.Message):
     def __init__(self, name: _Optional[str] = ..., width: _Optional[int] = ..., height: _Optional[int] = ..., K: _Optional[_Iterable[float]] = ..., R_ext: _Optional[_Iterable[float]] = ..., position: _Optional[_Iterable[float]] = ..., default_gamma: _Optional[float] = ...) -> None: ...
 
 class PolicyInfo(_message.Message):
-    __slots__ = ("proto_version", "model_id", "checkpoint_sha256", "action_space", "state_frame", "obs_horizon", "pred_horizon", "n_action_steps", "control_hz", "image_width", "image_height", "ddim_steps", "cameras", "unconditional", "default_views")
+    __slots__ = ("proto_version", "model_id", "checkpoint_sha256", "action_space", "state_frame", "obs_horizon", "pred_horizon", "n_action_steps", "control_hz", "image_width", "image_height", "ddim_steps", "cameras", "unconditional", "default_views", "server_instance")
     PROTO_VERSION_FIELD_NUMBER: _ClassVar[int]
     MODEL_ID_FIELD_NUMBER: _ClassVar[int]
     CHECKPOINT_SHA256_FIELD_NUMBER: _ClassVar[int]
@@ -47,6 +47,7 @@ class PolicyInfo(_message.Message):
     CAMERAS_FIELD_NUMBER: _ClassVar[int]
     UNCONDITIONAL_FIELD_NUMBER: _ClassVar[int]
     DEFAULT_VIEWS_FIELD_NUMBER: _ClassVar[int]
+    SERVER_INSTANCE_FIELD_NUMBER: _ClassVar[int]
     proto_version: int
     model_id: str
     checkpoint_sha256: str
@@ -62,7 +63,8 @@ class PolicyInfo(_message.Message):
     cameras: _containers.RepeatedCompositeFieldContainer[CameraInfo]
     unconditional: bool
     default_views: _containers.RepeatedScalarFieldContainer[str]
-    def __init__(self, proto_version: _Optional[int] = ..., model_id: _Optional[str] = ..., checkpoint_sha256: _Optional[str] = ..., action_space: _Optional[str] = ..., state_frame: _Optional[str] = ..., obs_horizon: _Optional[int] = ..., pred_horizon: _Optional[int] = ..., n_action_steps: _Optional[int] = ..., control_hz: _Optional[float] = ..., image_width: _Optional[int] = ..., image_height: _Optional[int] = ..., ddim_steps: _Optional[int] = ..., cameras: _Optional[_Iterable[_Union[CameraInfo, _Mapping]]] = ..., unconditional: _Optional[bool] = ..., default_views: _Optional[_Iterable[str]] = ...) -> None: ...
+    server_instance: str
+    def __init__(self, proto_version: _Optional[int] = ..., model_id: _Optional[str] = ..., checkpoint_sha256: _Optional[str] = ..., action_space: _Optional[str] = ..., state_frame: _Optional[str] = ..., obs_horizon: _Optional[int] = ..., pred_horizon: _Optional[int] = ..., n_action_steps: _Optional[int] = ..., control_hz: _Optional[float] = ..., image_width: _Optional[int] = ..., image_height: _Optional[int] = ..., ddim_steps: _Optional[int] = ..., cameras: _Optional[_Iterable[_Union[CameraInfo, _Mapping]]] = ..., unconditional: _Optional[bool] = ..., default_views: _Optional[_Iterable[str]] = ..., server_instance: _Optional[str] = ...) -> None: ...
 
 class Frame(_message.Message):
     __slots__ = ("jpeg", "rgb", "stamp_ns")
@@ -140,7 +142,7 @@ class Timing(_message.Message):
     def __init__(self, decode_ms: _Optional[float] = ..., encode_ms: _Optional[float] = ..., step_p50_ms: _Optional[float] = ..., step_max_ms: _Optional[float] = ..., total_ms: _Optional[float] = ..., server_receive_ns: _Optional[int] = ..., server_send_ns: _Optional[int] = ...) -> None: ...
 
 class ActionReply(_message.Message):
-    __slots__ = ("seq", "actions", "start_index", "obs_stamp_ns", "views_used", "degraded", "degraded_reasons", "timing", "checkpoint_sha256")
+    __slots__ = ("seq", "actions", "start_index", "obs_stamp_ns", "views_used", "degraded", "degraded_reasons", "timing", "checkpoint_sha256", "server_instance")
     SEQ_FIELD_NUMBER: _ClassVar[int]
     ACTIONS_FIELD_NUMBER: _ClassVar[int]
     START_INDEX_FIELD_NUMBER: _ClassVar[int]
@@ -150,6 +152,7 @@ class ActionReply(_message.Message):
     DEGRADED_REASONS_FIELD_NUMBER: _ClassVar[int]
     TIMING_FIELD_NUMBER: _ClassVar[int]
     CHECKPOINT_SHA256_FIELD_NUMBER: _ClassVar[int]
+    SERVER_INSTANCE_FIELD_NUMBER: _ClassVar[int]
     seq: int
     actions: _containers.RepeatedCompositeFieldContainer[_control_pb2.EefAction]
     start_index: int
@@ -159,7 +162,8 @@ class ActionReply(_message.Message):
     degraded_reasons: _containers.RepeatedScalarFieldContainer[str]
     timing: Timing
     checkpoint_sha256: str
-    def __init__(self, seq: _Optional[int] = ..., actions: _Optional[_Iterable[_Union[_control_pb2.EefAction, _Mapping]]] = ..., start_index: _Optional[int] = ..., obs_stamp_ns: _Optional[int] = ..., views_used: _Optional[_Iterable[str]] = ..., degraded: _Optional[bool] = ..., degraded_reasons: _Optional[_Iterable[str]] = ..., timing: _Optional[_Union[Timing, _Mapping]] = ..., checkpoint_sha256: _Optional[str] = ...) -> None: ...
+    server_instance: str
+    def __init__(self, seq: _Optional[int] = ..., actions: _Optional[_Iterable[_Union[_control_pb2.EefAction, _Mapping]]] = ..., start_index: _Optional[int] = ..., obs_stamp_ns: _Optional[int] = ..., views_used: _Optional[_Iterable[str]] = ..., degraded: _Optional[bool] = ..., degraded_reasons: _Optional[_Iterable[str]] = ..., timing: _Optional[_Union[Timing, _Mapping]] = ..., checkpoint_sha256: _Optional[str] = ..., server_instance: _Optional[str] = ...) -> None: ...
 
 class ResetRequest(_message.Message):
     __slots__ = ("session_id", "seed")

@@ -122,6 +122,8 @@ class PolicyClient:
         self._seq = 0
         self._lock = threading.Lock()
         self.info = self._connect(connect_timeout_s)
+        self._verified = {self.info.server_instance}  # server processes whose PolicyInfo is this one
+        self.server_changes = 0  # answers from a server process not seen before (restart, replica)
         self.reset()  # a fresh session: a client restarted under the same id starts its seq again at 1
 
     # -- connection ----------------------------------------------------------------------------
@@ -155,18 +157,40 @@ class PolicyClient:
             )
         return info
 
-    def _check_checkpoint(self, sha256: str) -> None:
-        """A chunk from another checkpoint (the server restarted with a new one, or a load balancer
-        reached another) is refused: its actions were computed with other normalisation and views."""
-        if sha256 and sha256 != self.info.checkpoint_sha256:
+    def _check_server(self, reply: policy_pb2.ActionReply) -> None:
+        """Refuse a chunk the held PolicyInfo does not describe.
+
+        Another checkpoint (the server restarted with a new one, or a load balancer reached another):
+        its actions were computed with other normalisation and views. Another server process
+        (``server_instance``: a restart, a reconnect to another replica, a proxy's other backend):
+        its PolicyInfo is asked for and compared field by field -- the same, and it is used from
+        now on (``server_changes`` counts it); other views, calibration, horizons or settings, and
+        the chunk is refused."""
+        if reply.checkpoint_sha256 and reply.checkpoint_sha256 != self.info.checkpoint_sha256:
             try:
                 now = self._connect(self.timeout_s).model_id
             except PolicyError:
                 now = "another checkpoint"
             raise PolicyChanged(
-                f"{self.address} now serves {now} ({sha256[:12]}), not {self.info.model_id} "
+                f"{self.address} now serves {now} ({reply.checkpoint_sha256[:12]}), not {self.info.model_id} "
                 f"({self.info.checkpoint_sha256[:12]}): reconnect to use it"
             )
+        if not reply.server_instance or reply.server_instance in self._verified:
+            return
+        now = self._connect(self.timeout_s)
+        differ = [
+            f.name
+            for f in now.DESCRIPTOR.fields
+            if f.name != "server_instance" and getattr(now, f.name) != getattr(self.info, f.name)
+        ]
+        if differ:
+            raise PolicyChanged(
+                f"{self.address} is now answered by another server process (restarted, or another "
+                f"replica) whose {', '.join(differ)} differ from the one connected to: reconnect to use it"
+            )
+        with self._lock:
+            self._verified.add(now.server_instance)
+            self.server_changes += 1
 
     # -- calls ---------------------------------------------------------------------------------
     def request(
@@ -210,7 +234,7 @@ class PolicyClient:
             reply = self.stub.GetAction(req, timeout=timeout_s or self.timeout_s, metadata=self._metadata)
         except grpc.RpcError as exc:
             raise PolicyError(f"GetAction seq {req.seq}: {exc.code().name}: {exc.details()}", exc.code()) from None
-        self._check_checkpoint(reply.checkpoint_sha256)
+        self._check_server(reply)
         acts = np.array([[*a.dp, *a.drot, a.gripper] for a in reply.actions], dtype=np.float64).reshape(-1, 7)
         t = reply.timing
         return ActionChunk(

@@ -695,6 +695,7 @@ class PolicyService(policy_pb2_grpc.PolicyServicer):
         self.scheduler = make_inference_scheduler(noise)
         self.backend: Any = None  # () -> Denoiser, set once the model or the workers are ready
         self.sessions: dict[str, Session] = {}
+        self.instance = uuid.uuid4().hex  # this process (PolicyInfo, ActionReply: server_instance)
         self.requests = 0
         self.degraded = 0
         # Frames are decoded off the event loop; their decode is numpy/OpenCV, released from the GIL.
@@ -719,6 +720,7 @@ class PolicyService(policy_pb2_grpc.PolicyServicer):
             ddim_steps=len(self.scheduler.timesteps),
             unconditional=s.unconditional,
             default_views=self.default_views,
+            server_instance=self.instance,
         )
         for name in s.camera_order:
             c = s.cameras[name]
@@ -830,6 +832,7 @@ class PolicyService(policy_pb2_grpc.PolicyServicer):
             degraded=bool(result.dropped or result.moved),
             degraded_reasons=[f"{v}: {why}" for v, why in {**result.dropped, **result.moved}.items()],
             checkpoint_sha256=self.spec.sha256,
+            server_instance=self.instance,
         )
         for row in actions:
             reply.actions.append(action_msg(EefDelta(row[0:3], row[3:6], float(row[6]))))

@@ -343,6 +343,9 @@ def test_serve_restarts_a_local_worker_that_dies_on_its_address(checkpoint, obse
     server, addr = start_server(checkpoint, "--views", "F,FL,FR", "--workers", "2")
     robots = Robots(addr, observations)
     try:
+        # the server answers once one worker is ready: kill one only when both are admitted (else
+        # the other may still be loading its model, with nowhere for the views to move)
+        wait_for(lambda: server.log_path.read_text().count(" admitted (") >= 2, 60, "both workers admitted")
         with robots:
             first = local_workers(server.pid)
             assert len(first) == 2
@@ -482,7 +485,12 @@ def test_a_newer_request_of_a_session_cancels_the_older_and_sessions_are_separat
         stop(proc)
 
 
-def test_a_chunk_from_another_checkpoint_is_refused_after_a_restart(checkpoint, observations, tmp_path):
+def test_after_a_restart_the_client_checks_the_server_again_and_refuses_a_changed_one(
+    checkpoint, observations, tmp_path
+):
+    """The server on the client's address restarted: with the same settings its answers are used
+    (the client asked for its PolicyInfo once: server_changes); with other default views, or
+    another checkpoint, the client refuses its chunks (PolicyChanged) rather than act on them."""
     import json
     import shutil
 
@@ -496,14 +504,27 @@ def test_a_chunk_from_another_checkpoint_is_refused_after_a_restart(checkpoint, 
     port = free_tcp_port()
     frames, states = observations[3]
 
-    def serve(ckpt: Path) -> subprocess.Popen:
-        args = ["serve", "--checkpoint", str(ckpt), "--listen", f"127.0.0.1:{port}", "--views", "F", "--in-process"]
+    def serve(ckpt: Path, views: str = "F") -> subprocess.Popen:
+        args = ["serve", "--checkpoint", str(ckpt), "--listen", f"127.0.0.1:{port}", "--views", views, "--in-process"]
         return start(args, "policy")[0]
 
     proc = serve(checkpoint)
     try:
         with PolicyClient(f"127.0.0.1:{port}", session_id="robot-1", connect_timeout_s=60) as client:
-            assert client.get_action({"F": frames["F"]}, states, seed=1).actions.shape == (16, 7)
+            first = client.get_action({"F": frames["F"]}, states, seed=1)
+            assert first.actions.shape == (16, 7) and client.server_changes == 0
+            stop(proc)
+            proc = serve(checkpoint)  # the same settings: its answers are used, once its info is checked
+            again = client.get_action({"F": frames["F"]}, states, seed=1, timeout_s=60)
+            np.testing.assert_array_equal(again.actions, first.actions)
+            client.get_action({"F": frames["F"]}, states, seed=1)
+            assert client.server_changes == 1  # checked once, not per call
+            stop(proc)
+            # the same checkpoint, other default views: it answers a request naming its view, and
+            # the client refuses the chunk
+            proc = serve(checkpoint, views="F,FL")
+            with pytest.raises(PolicyChanged, match=r"another server process .*default_views"):
+                client.get_action({"F": frames["F"]}, states, views=["F"], seed=1, timeout_s=60)
             stop(proc)
             proc = serve(other)  # the same address now serves another checkpoint
             with pytest.raises(PolicyChanged, match="now serves other-run@step_0000001"):
@@ -554,6 +575,7 @@ def test_a_robot_leaves_a_frozen_policy_server_after_a_keepalive(checkpoint, obs
             chunk = wait_for(answered, 30, "an answer from the server that is not frozen")
             assert chunk.views_used == ("F",) and not chunk.degraded
             assert _has_session(other[1], "robot")  # answered there
+            assert client.server_changes == 1  # after checking that server's PolicyInfo
             # the calls that ran into the frozen connection: late, or cut when the ping went unanswered
             assert all(e.code in (grpc.StatusCode.DEADLINE_EXCEEDED, grpc.StatusCode.UNAVAILABLE) for e in failed)
             client.channel.unsubscribe(seen.append)
