@@ -13,12 +13,12 @@ from pathlib import Path
 
 
 def configure_logging(level: str = "INFO") -> None:
-    """Called once from a service's main (never at import time)."""
-    logging.basicConfig(
-        level=getattr(logging, level.upper(), logging.INFO),
-        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
-        stream=sys.stderr,
-    )
+    """Called once from a service's main (never at import time). The service's level is set even
+    where logging was configured before it (the ``viewscale`` CLI's ``--log-level``, WARNING by
+    default): ``viewscale serve`` logs at its ``log_level`` setting, as ``python -m`` does."""
+    lvl = getattr(logging, level.upper(), logging.INFO)
+    logging.basicConfig(level=lvl, format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stderr)
+    logging.getLogger().setLevel(lvl)
 
 
 def stop_on_signals(stop: threading.Event) -> None:

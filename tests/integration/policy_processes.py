@@ -16,15 +16,18 @@ from services.pb import policy_pb2, policy_pb2_grpc
 ROOT = Path(__file__).resolve().parents[2]
 
 
-def start(args: list[str], kind: str, env=None, prefix: tuple[str, ...] = ()) -> tuple[subprocess.Popen, str]:
-    """``[PREFIX] python -m services.policy ARGS``, once it prints ``ready KIND ADDRESS``: (process,
-    address). ``prefix``: a command it runs under (``taskset -c 1``).
+def start(
+    args: list[str], kind: str, env=None, prefix: tuple[str, ...] = (), module: str = "services.policy"
+) -> tuple[subprocess.Popen, str]:
+    """``[PREFIX] python -m MODULE ARGS``, once it prints ``ready KIND ADDRESS``: (process,
+    address). ``prefix``: a command it runs under (``taskset -c 1``); ``module``: ``services.cli``
+    runs it as ``viewscale ARGS``.
 
     Its log goes to a file (``proc.log_path``), never to a pipe nobody reads: a full pipe would
     block the process at its next log line."""
     log = tempfile.NamedTemporaryFile("w+", prefix=f"vs-{kind}-", suffix=".log", delete=False)
     proc = subprocess.Popen(
-        [*prefix, sys.executable, "-m", "services.policy", *args],
+        [*prefix, sys.executable, "-m", module, *args],
         cwd=ROOT,
         stdout=subprocess.PIPE,
         stderr=log,

@@ -94,6 +94,22 @@ def test_one_view_through_the_server_is_the_in_process_sampler(checkpoint, obser
         stop(proc)
 
 
+def test_viewscale_serve_logs_at_its_log_level(checkpoint):
+    """``viewscale serve`` (whose CLI configures logging at WARNING first) logs what it serves at
+    its ``log_level`` setting, INFO by default, as ``python -m services.policy serve`` does."""
+    args = ["serve", "--checkpoint", str(checkpoint), "--listen", "127.0.0.1:0", "--views", "F", "--in-process"]
+    proc, addr = start(args, "policy", module="services.cli")
+    try:
+        assert "INFO services.policy.server: policy " in proc.log_path.read_text()  # its model, address, views
+    finally:
+        stop(proc)
+    quiet, _ = start([*args, "--set", "log_level=WARNING"], "policy", module="services.cli")
+    try:
+        assert "INFO" not in quiet.log_path.read_text()
+    finally:
+        stop(quiet)
+
+
 def test_fan_out_to_workers_gives_the_in_process_actions(checkpoint, observations):
     # the grouping worker waits as long as it takes for a group's views (a loaded machine can hold a
     # view's message back longer than the default 50 ms): the pass count below is then exact
