@@ -307,7 +307,11 @@ def _add_optional(sub, module: str, register: str) -> None:
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="viewscale", description="Scale camera views instead of demonstrations.")
-    parser.add_argument("--log-level", default="WARNING", help="logging level (default WARNING)")
+    parser.add_argument(
+        "--log-level",
+        default="WARNING",
+        help="logging level (default WARNING); serve and worker log at their own log_level setting (INFO)",
+    )
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     p = sub.add_parser("collect", help="record scripted-expert episodes in sim through the real services")
