@@ -406,7 +406,7 @@ class WorkerPool:
         units: list[list[WorkerHandle]] = []
         for w in healthy:
             joined = [u for u in units if any(w.competes_with(o) for o in u)]
-            units = [u for u in units if u not in joined]
+            units = [u for u in units if not any(u is j for j in joined)]
             units.append([x for u in joined for x in u] + [w])
         order = {id(w): i for i, w in enumerate(healthy)}
         for u in units:
