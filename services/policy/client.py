@@ -27,7 +27,7 @@ import numpy as np
 from services.core.tensors import encode_jpeg, to_tensor
 from services.pb import policy_pb2, policy_pb2_grpc
 from services.policy import POLICY_PROTO_VERSION
-from services.policy.transport import keepalive_channel_options
+from services.policy.transport import keepalive_channel_options, message_size_options
 
 Image = bytes | np.ndarray  # JPEG bytes, or (H, W, 3) uint8 RGB
 
@@ -102,10 +102,8 @@ class PolicyClient:
         self.timeout_s = timeout_s
         self.jpeg_quality = jpeg_quality  # raw numpy frames are sent as JPEG at this quality (0: raw RGB)
         self._metadata = (("authorization", f"Bearer {token}"),) if token else None
-        size = max_message_mb << 20
         options = [
-            ("grpc.max_receive_message_length", size),
-            ("grpc.max_send_message_length", size),
+            *message_size_options(max_message_mb),
             ("grpc.enable_retries", 0),  # a late chunk is worthless: never retried blindly
             # a server that stopped answering with the connection open (frozen, its host gone, a
             # NAT that forgot an idle robot) is left after an unanswered ping, and the channel

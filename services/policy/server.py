@@ -65,7 +65,7 @@ from services.policy.config import PLACEMENTS
 from services.policy.model.diffusion import make_inference_scheduler
 from services.policy.model.policy import NoiseConfig
 from services.policy.observation import CameraSpec, InvalidRequest, Parsed, PolicySpec, model_inputs, parse
-from services.policy.transport import keepalive_channel_options, keepalive_server_options
+from services.policy.transport import keepalive_channel_options, keepalive_server_options, message_size_options
 from services.policy.worker import (
     OPEN_METHODS,
     REPLICA_KEY,
@@ -318,8 +318,7 @@ class WorkerPool:
         self.workers: list[WorkerHandle] = []
         options = [
             ("grpc.lb_policy_name", "round_robin"),
-            ("grpc.max_receive_message_length", 16 << 20),
-            ("grpc.max_send_message_length", 16 << 20),
+            *message_size_options(16),
             # a worker back after a restart is reconnected within 5 s (grpc's default backoff
             # grows to 2 minutes while it is down)
             ("grpc.max_reconnect_backoff_ms", 5000),
@@ -1022,12 +1021,10 @@ async def serve_policy(cfg, stop: asyncio.Event, worker_addresses: list[str], an
     views = list(cfg.views or spec.train_views)
     service = PolicyService(spec, noise, views, cfg.max_sessions, cfg.request_timeout_s)
     interceptors = [BearerTokenInterceptor(cfg.token)] if cfg.token else []
-    size = cfg.max_message_mb << 20
     server = grpc.aio.server(
         interceptors=interceptors,
         options=[
-            ("grpc.max_receive_message_length", size),
-            ("grpc.max_send_message_length", size),
+            *message_size_options(cfg.max_message_mb),
             *keepalive_server_options(),  # the robots' pings (PolicyClient keepalive_s)
         ],
     )

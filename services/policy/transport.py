@@ -16,6 +16,12 @@ from __future__ import annotations
 KEEPALIVE_MIN_PING_MS = 500
 
 
+def message_size_options(max_mb: int) -> list[tuple[str, int]]:
+    """Channel or server options: messages of at most ``max_mb`` MiB, both ways."""
+    size = max_mb << 20
+    return [("grpc.max_receive_message_length", size), ("grpc.max_send_message_length", size)]
+
+
 def keepalive_channel_options(keepalive_s: float) -> list[tuple[str, int]]:
     """Channel options: ping every ``keepalive_s``, idle or not; close the connection when a ping
     is unanswered for as long. Empty for 0 (no pings)."""

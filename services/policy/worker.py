@@ -52,7 +52,7 @@ from grpc_reflection.v1alpha import reflection
 from services.core.tensors import from_tensor, to_tensor
 from services.pb import policy_pb2, policy_pb2_grpc
 from services.policy.checkpoint import LoadedPolicy, checkpoint_sha256, load_policy, model_id
-from services.policy.transport import keepalive_server_options
+from services.policy.transport import keepalive_server_options, message_size_options
 
 log = logging.getLogger(__name__)
 
@@ -524,13 +524,11 @@ async def serve_worker(cfg, stop: asyncio.Event, announce=print) -> int:
 
     The gRPC server is the synchronous one (its own threads: a thread per open stream); this
     coroutine only loads the model off the loop and waits for the stop signal."""
-    size = cfg.max_message_mb << 20
     server = grpc.server(
         futures.ThreadPoolExecutor(max_workers=cfg.max_streams, thread_name_prefix="denoise"),
         interceptors=[WorkerTokenInterceptor(cfg.token)] if cfg.token else [],
         options=[
-            ("grpc.max_receive_message_length", size),
-            ("grpc.max_send_message_length", size),
+            *message_size_options(cfg.max_message_mb),
             *keepalive_server_options(),  # the policy server's pings (services.policy.transport)
         ],
         maximum_concurrent_rpcs=cfg.max_streams,
