@@ -423,14 +423,15 @@ class WorkerPool:
         and ``auto`` spreads them over GPUs and machines and packs them on a machine's CPU
         (docs/serving.md has the measurements).
         """
-        units = self.units()
+        # each group's least-loaded worker (a group's load changes only once the request uses it)
+        least = [min(u, key=lambda w: w.streams) for u in self.units()]
         chosen: dict[int, WorkerHandle] = {}  # group -> the worker this request uses there
         out: dict[str, WorkerHandle] = {}
         for v in views:
-            fresh = [i for i in range(len(units)) if i not in chosen]
+            fresh = [i for i in range(len(least)) if i not in chosen]
             if fresh:
-                i = min(fresh, key=lambda i: min(w.streams for w in units[i]))
-                chosen[i] = min(units[i], key=lambda w: w.streams)
+                i = min(fresh, key=lambda i: least[i].streams)
+                chosen[i] = least[i]
             elif chosen:
                 i = min(chosen, key=lambda i: chosen[i].streams)
             else:
