@@ -74,20 +74,37 @@ def test_callers_computing_in_their_own_threads_share_passes_and_get_the_engine_
         got[i] = engine.compute_steps([(cond, x, 5)])[0]
         threads_seen[i] = torch.get_num_threads()
 
+    # The long encode's pass is held open (the real encode, then a wait) until the callers have
+    # queued behind it: on a loaded machine the encode alone could end before they queue, and the
+    # loops below would wait for a pass that had already gone (seen once in a fresh-clone CI run).
+    release = threading.Event()
+    encode = engine._encode
+
+    def held_encode(items):
+        out = encode(items)
+        release.wait(30)
+        return out
+
+    engine._encode = held_encode
     passes, items = engine.passes, engine.batched_items
     busy = threading.Thread(target=lambda: got.setdefault("busy", engine.compute_encode(list(zip(frames, states)))))
-    busy.start()
-    deadline = time.monotonic() + 30
-    while not engine._pass.locked():  # the long encode has the pass ...
-        assert time.monotonic() < deadline
-        time.sleep(0.001)
-    callers = [threading.Thread(target=caller, args=(i,)) for i in range(4)]
-    for t in callers:
-        t.start()
-    while len(engine._jobs) < 4:  # ... and the four callers queue behind it
-        assert time.monotonic() < deadline
-        time.sleep(0.001)
-    assert busy.is_alive(), "the encode ended before the callers queued: the test proves nothing"
+    callers: list[threading.Thread] = []
+    try:
+        busy.start()
+        deadline = time.monotonic() + 30
+        while not engine._pass.locked():  # the long encode has the pass ...
+            assert time.monotonic() < deadline
+            time.sleep(0.001)
+        callers += [threading.Thread(target=caller, args=(i,)) for i in range(4)]
+        for t in callers:
+            t.start()
+        while len(engine._jobs) < 4:  # ... and the four callers queue behind it
+            assert time.monotonic() < deadline
+            time.sleep(0.001)
+        assert busy.is_alive(), "the encode ended before the callers queued: the test proves nothing"
+    finally:
+        release.set()
+        del engine._encode  # the class's again
     for t in [busy, *callers]:
         t.join(timeout=60)
     assert len(got["busy"]) == 64
