@@ -306,11 +306,15 @@ def _add_optional(sub, module: str, register: str) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from services.core.cli_args import log_level_arg
+
     parser = argparse.ArgumentParser(prog="viewscale", description="Scale camera views instead of demonstrations.")
     parser.add_argument(
         "--log-level",
         default="WARNING",
-        help="logging level (default WARNING); serve and worker log at their own log_level setting (INFO)",
+        type=log_level_arg,
+        help="logging level: DEBUG, INFO, WARNING, ERROR or CRITICAL (default WARNING); "
+        "serve and worker log at their own log_level setting (INFO)",
     )
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
@@ -464,7 +468,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     logging.basicConfig(
-        level=getattr(logging, str(args.log_level).upper(), logging.WARNING),
+        level=getattr(logging, args.log_level),
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
     )
     return int(args.func(args) or 0)

@@ -6,7 +6,7 @@ from pydantic import Field, field_validator, model_validator
 
 from services.camera.base import CameraDriver
 from services.core.bus import BusConfig
-from services.core.config import Frozen
+from services.core.config import Frozen, LogLevel
 from services.core.registry import DriverConfig, Registry, World, check_world
 
 
@@ -124,7 +124,7 @@ class CameraConfig(Frozen):
     jpeg_quality: int = Field(90, ge=10, le=100)  # JPEG quality of published frames
     calibration_period_s: float = Field(1.0, gt=0)  # republish calibration and poses this often
     stats_period_s: float = Field(10.0, gt=0)  # log each camera's fps, drops and gaps this often
-    log_level: str = "INFO"  # logging level of the process
+    log_level: LogLevel = "INFO"  # logging level of the process
 
     @model_validator(mode="after")
     def _world(self) -> CameraConfig:

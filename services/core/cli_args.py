@@ -7,10 +7,18 @@ import sys
 from collections.abc import Callable
 from typing import TypeVar
 
-from services.core.config import ConfigError, load_config
+from services.core.config import ConfigError, load_config, log_level_name
 from services.core.runtime import configure_logging
 
 C = TypeVar("C")
+
+
+def log_level_arg(value: str) -> str:
+    """argparse ``type`` of a ``--log-level`` flag: a level name in any case, or a usage error."""
+    try:
+        return log_level_name(value)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def service_main(

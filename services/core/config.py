@@ -11,10 +11,10 @@ from __future__ import annotations
 import os
 from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Annotated, Any, TypeVar
 
 import yaml
-from pydantic import BaseModel, ConfigDict, ValidationError
+from pydantic import AfterValidator, BaseModel, ConfigDict, ValidationError
 
 ENV_PREFIX = "VIEWSCALE_"
 
@@ -29,6 +29,20 @@ class Frozen(BaseModel):
 
 class ConfigError(ValueError):
     """A configuration could not be loaded; the message names the source and the field."""
+
+
+LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL")
+
+
+def log_level_name(value: str) -> str:
+    """``"info"`` -> ``"INFO"``; a name that is not a logging level is an error (not INFO in silence)."""
+    name = str(value).strip().upper()
+    if name not in LOG_LEVELS:
+        raise ValueError(f"{value!r} is not a logging level; one of {', '.join(LOG_LEVELS)} (any case)")
+    return name
+
+
+LogLevel = Annotated[str, AfterValidator(log_level_name)]
 
 
 def deep_merge(base: dict[str, Any], top: Mapping[str, Any]) -> dict[str, Any]:

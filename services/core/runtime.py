@@ -11,12 +11,14 @@ import sys
 import threading
 from pathlib import Path
 
+from services.core.config import log_level_name
+
 
 def configure_logging(level: str = "INFO") -> None:
     """Called once from a service's main (never at import time). The service's level is set even
     where logging was configured before it (the ``viewscale`` CLI's ``--log-level``, WARNING by
     default): ``viewscale serve`` logs at its ``log_level`` setting, as ``python -m`` does."""
-    lvl = getattr(logging, level.upper(), logging.INFO)
+    lvl = getattr(logging, log_level_name(level))  # a name that is no level raises, never INFO in silence
     logging.basicConfig(level=lvl, format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stderr)
     logging.getLogger().setLevel(lvl)
 

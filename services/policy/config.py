@@ -6,7 +6,7 @@ from typing import Literal, get_args
 
 from pydantic import Field, model_validator
 
-from services.core.config import Frozen
+from services.core.config import Frozen, LogLevel
 
 # how a request's views are put on workers (WorkerPool.place); `viewscale serve --placement` lists
 # them again, so that building the CLI's parser does not import this module
@@ -41,7 +41,7 @@ class WorkerConfig(Frozen):
     token: str | None = None  # bearer token callers must present (the server's)
     tls: TlsConfig = TlsConfig()  # serve over TLS
     max_message_mb: int = Field(16, ge=1)  # gRPC message size cap, both ways
-    log_level: str = "INFO"  # logging level of the process
+    log_level: LogLevel = "INFO"  # logging level of the process
 
 
 class ServerConfig(Frozen):
@@ -67,4 +67,4 @@ class ServerConfig(Frozen):
     worker_keepalive_s: float = Field(5.0, ge=1.0)
     max_sessions: int = Field(256, ge=1)  # robot sessions kept (idle ones are forgotten first)
     max_message_mb: int = Field(16, ge=1)  # gRPC message size cap, both ways
-    log_level: str = "INFO"  # logging level of the process
+    log_level: LogLevel = "INFO"  # logging level of the process

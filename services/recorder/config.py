@@ -7,7 +7,7 @@ from pathlib import Path
 from pydantic import Field
 
 from services.core.bus import BusConfig
-from services.core.config import Frozen
+from services.core.config import Frozen, LogLevel
 
 
 class RecorderConfig(Frozen):
@@ -20,4 +20,4 @@ class RecorderConfig(Frozen):
     stop_grace_s: float = Field(2.0, ge=0)  # STOP waits up to this long for the ticks the source published
     max_episode_ticks: int = Field(360_000, ge=1)  # a STOP claiming more ticks is refused (5 h at 20 Hz)
     decode_images: bool = True  # fully decode every JPEG to validate it (else check its markers only)
-    log_level: str = "INFO"  # logging level of the process
+    log_level: LogLevel = "INFO"  # logging level of the process

@@ -5,7 +5,7 @@ from typing import Literal
 from pydantic import Field, model_validator
 
 from services.core.bus import BusConfig
-from services.core.config import Frozen
+from services.core.config import Frozen, LogLevel
 from services.core.registry import DriverConfig, Registry, World, check_world
 from services.robot.base import RobotDriver
 from services.robot.gripper import Gripper
@@ -76,7 +76,7 @@ class RobotConfig(Frozen):
     realtime: bool = True  # pace ticks by the wall clock (always true on hardware)
     command_timeout_s: float = Field(0.5, gt=0)  # lockstep only: wait this long for a tick's command
     command_wait_fraction: float = Field(0.8, gt=0, le=1)  # real time: wait at most this part of a period
-    log_level: str = "INFO"  # logging level of the process
+    log_level: LogLevel = "INFO"  # logging level of the process
 
     @model_validator(mode="after")
     def _world(self) -> RobotConfig:

@@ -18,6 +18,7 @@ import threading
 from pathlib import Path
 
 from services.core.bus import read_users, router
+from services.core.cli_args import log_level_arg
 from services.core.config import ConfigError
 from services.core.runtime import announce_ready, configure_logging, die_with_parent, stop_on_signals
 
@@ -34,7 +35,9 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--users", type=Path, help="user:password file; sessions not in it are refused")
     parser.add_argument("--acl", type=Path, help="zenoh JSON5 access control, per user (needs --users)")
-    parser.add_argument("--log-level", default="INFO")
+    parser.add_argument(
+        "--log-level", default="INFO", type=log_level_arg, help="DEBUG, INFO, WARNING, ERROR or CRITICAL"
+    )
     args = parser.parse_args(argv)
     if args.acl is not None and args.users is None:
         parser.error("--acl needs --users: its rules name users that must authenticate")

@@ -3,7 +3,7 @@ from __future__ import annotations
 from pydantic import Field
 
 from services.core.bus import BusConfig
-from services.core.config import Frozen
+from services.core.config import Frozen, LogLevel
 
 DEFAULT_MAX_TICKS = {"lift": 150, "can": 300, "square": 400}  # the sim tasks' horizons
 # Evaluation seeds: fixed per task, so every row of a table starts from the same scenes, and
@@ -26,7 +26,7 @@ class SessionConfig(Frozen):
     control_hz: float = Field(20.0, gt=0)  # the sim's control rate (recorded; used for time limits)
     services: list[str] = Field(default_factory=lambda: ["sim", "teleop", "recorder"])  # must be alive
     wait_services_s: float = Field(120.0, gt=0)  # how long to wait for them at start-up
-    log_level: str = "INFO"  # logging level of the process
+    log_level: LogLevel = "INFO"  # logging level of the process
 
     def tick_limit(self) -> int:
         return self.max_ticks or DEFAULT_MAX_TICKS.get(self.task, 400)

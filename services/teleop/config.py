@@ -5,7 +5,7 @@ from typing import Literal
 from pydantic import Field, model_validator
 
 from services.core.bus import BusConfig
-from services.core.config import Frozen
+from services.core.config import Frozen, LogLevel
 from services.core.registry import DriverConfig, Registry, World, check_world
 from services.teleop.base import TeleopDriver
 
@@ -96,7 +96,7 @@ class TeleopConfig(Frozen):
     driver: TELEOP_DRIVERS.config_type() = ScriptedTeleopConfig()  # {type: scripted} or {type: package.module:Class}
     task_state_wait_s: float = Field(0.05, ge=0)  # how long to wait for a tick's task state after its robot state
     frame_wait_s: float = Field(0.05, ge=0)  # how long to wait for the cameras' frames of a tick (policy drivers)
-    log_level: str = "INFO"  # logging level of the process
+    log_level: LogLevel = "INFO"  # logging level of the process
 
     @model_validator(mode="after")
     def _world(self) -> TeleopConfig:

@@ -15,7 +15,7 @@ from typing import Any, Literal
 from pydantic import Field, model_validator
 
 from services.core.bus import BusConfig
-from services.core.config import ConfigError, Frozen, load_config, validate_config
+from services.core.config import ConfigError, Frozen, LogLevel, load_config, validate_config
 from services.policy.model.policy import ModelConfig
 from services.policy.model.presets import PRESETS, preset
 
@@ -80,7 +80,7 @@ class TrainerServiceConfig(Frozen):
     poll_s: float = Field(1.0, gt=0)  # how often the jobs directory is scanned
     progress_every_s: float = Field(1.0, ge=0)  # minimum seconds between progress messages
     defaults: list[str] = Field(default_factory=list)  # `key=value` overrides applied under every job's own
-    log_level: str = "INFO"  # logging level of the process
+    log_level: LogLevel = "INFO"  # logging level of the process
 
 
 def preset_layer(data: Mapping[str, Any]) -> dict[str, Any]:

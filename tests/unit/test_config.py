@@ -2,7 +2,7 @@ import pytest
 from pydantic import ValidationError
 
 from services.core.bus import BusConfig
-from services.core.config import ConfigError, Frozen, load_config, parse_overrides
+from services.core.config import ConfigError, Frozen, LogLevel, load_config, parse_overrides
 
 
 class Inner(Frozen):
@@ -68,3 +68,22 @@ def test_collecting_tests_that_need_no_model_does_not_import_torch():
     )
     out = subprocess.run([sys.executable, "-c", code], cwd=root, capture_output=True, text=True, timeout=120)
     assert "TORCH False RC 0" in out.stdout, out.stdout[-2000:] + out.stderr[-2000:]
+
+
+class Service(Frozen):
+    log_level: LogLevel = "INFO"
+
+
+def test_log_level_takes_any_case_and_refuses_a_name_that_is_no_level(capsys):
+    assert load_config(Service, None, ["log_level=debug"], environ={}).log_level == "DEBUG"
+    assert load_config(Service, None, [], environ={"VIEWSCALE_LOG_LEVEL": "Warning"}).log_level == "WARNING"
+    # before, an unknown name set the level to INFO without a word
+    with pytest.raises(ConfigError, match=r"log_level.*'LOUD' is not a logging level; one of DEBUG, INFO"):
+        load_config(Service, None, ["log_level=LOUD"], environ={})
+    # the flags of the viewscale CLI and of the router: a usage error naming the flag
+    from services.cli import build_parser
+
+    assert build_parser().parse_args(["--log-level", "error", "collect"]).log_level == "ERROR"
+    with pytest.raises(SystemExit) as exc:
+        build_parser().parse_args(["--log-level", "verbose", "collect"])
+    assert exc.value.code == 2 and "argument --log-level: 'verbose' is not a logging level" in capsys.readouterr().err
