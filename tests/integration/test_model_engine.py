@@ -68,6 +68,13 @@ def test_callers_computing_in_their_own_threads_share_passes_and_get_the_engine_
     x = np.random.default_rng(3).standard_normal((16, 7)).astype(np.float32)
     alone = engine.step(cond, x, 5).result(timeout=30)
     torch.set_num_threads(2)  # a thread made before the model loaded (a health check's) computes with 2
+    try:
+        _callers_join_a_held_pass(engine, frames, states, cond, x, alone)
+    finally:
+        torch.set_num_threads(1)  # also when it fails: a later test's in-process reference computes in this thread
+
+
+def _callers_join_a_held_pass(engine, frames, states, cond, x, alone) -> None:
     got, threads_seen = {}, {}
 
     def caller(i: int) -> None:
@@ -112,4 +119,3 @@ def test_callers_computing_in_their_own_threads_share_passes_and_get_the_engine_
     for i in range(4):
         np.testing.assert_allclose(got[i], alone, rtol=0, atol=1e-5)
     assert set(threads_seen.values()) == {engine.threads}  # each caller computed with the engine's count
-    torch.set_num_threads(1)

@@ -71,8 +71,17 @@ def reference_actions(ckpt: Path, frames, states, view: str, seed: int) -> np.nd
         )
     img, st = model_inputs(parse(msg, spec, [view]), spec)[view]
     obs = torch.from_numpy(np.ascontiguousarray(spec.normalizer.normalize_image(img[None]).transpose(0, 1, 4, 2, 3)))
-    with torch.no_grad():
-        chunk = sample(loaded.policy, obs, torch.from_numpy(st[None]), generator=torch.Generator().manual_seed(seed))
+    # with as many intra-op threads as the server's model: another count splits the float sums
+    # otherwise and changes the last bits (seen: a test that left 2 here made this differ by 2e-6)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(ServerConfig(checkpoint=str(ckpt)).threads)
+    try:
+        with torch.no_grad():
+            chunk = sample(
+                loaded.policy, obs, torch.from_numpy(st[None]), generator=torch.Generator().manual_seed(seed)
+            )
+    finally:
+        torch.set_num_threads(threads)
     a = spec.normalizer.unnormalize_action(chunk[0].numpy().astype(np.float64))
     return from_space(a, "camera", R_ext=spec.cameras[view].R_ext)
 
