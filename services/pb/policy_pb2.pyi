@@ -228,7 +228,7 @@ class WorkerInfoRequest(_message.Message):
     def __init__(self) -> None: ...
 
 class WorkerInfo(_message.Message):
-    __slots__ = ("checkpoint_sha256", "model_id", "device", "threads", "max_batch", "streams", "passes", "batched_items", "max_streams", "machine", "cores")
+    __slots__ = ("checkpoint_sha256", "model_id", "device", "threads", "max_batch", "streams", "passes", "batched_items", "max_streams", "machine", "cores", "accelerator")
     CHECKPOINT_SHA256_FIELD_NUMBER: _ClassVar[int]
     MODEL_ID_FIELD_NUMBER: _ClassVar[int]
     DEVICE_FIELD_NUMBER: _ClassVar[int]
@@ -240,6 +240,7 @@ class WorkerInfo(_message.Message):
     MAX_STREAMS_FIELD_NUMBER: _ClassVar[int]
     MACHINE_FIELD_NUMBER: _ClassVar[int]
     CORES_FIELD_NUMBER: _ClassVar[int]
+    ACCELERATOR_FIELD_NUMBER: _ClassVar[int]
     checkpoint_sha256: str
     model_id: str
     device: str
@@ -251,4 +252,5 @@ class WorkerInfo(_message.Message):
     max_streams: int
     machine: str
     cores: _containers.RepeatedScalarFieldContainer[int]
-    def __init__(self, checkpoint_sha256: _Optional[str] = ..., model_id: _Optional[str] = ..., device: _Optional[str] = ..., threads: _Optional[int] = ..., max_batch: _Optional[int] = ..., streams: _Optional[int] = ..., passes: _Optional[int] = ..., batched_items: _Optional[int] = ..., max_streams: _Optional[int] = ..., machine: _Optional[str] = ..., cores: _Optional[_Iterable[int]] = ...) -> None: ...
+    accelerator: str
+    def __init__(self, checkpoint_sha256: _Optional[str] = ..., model_id: _Optional[str] = ..., device: _Optional[str] = ..., threads: _Optional[int] = ..., max_batch: _Optional[int] = ..., streams: _Optional[int] = ..., passes: _Optional[int] = ..., batched_items: _Optional[int] = ..., max_streams: _Optional[int] = ..., machine: _Optional[str] = ..., cores: _Optional[_Iterable[int]] = ..., accelerator: _Optional[str] = ...) -> None: ...

@@ -257,13 +257,19 @@ class WorkerHandle:
     device: str = ""  # its model's device (WorkerInfo), once admitted
     machine: str = ""  # the machine it runs on (WorkerInfo: the kernel's boot id), once admitted
     cores: frozenset[int] = frozenset()  # the CPU cores it may run on (WorkerInfo), once admitted
+    accelerator: str = ""  # its GPU's own id (WorkerInfo: a CUDA UUID), once admitted; "" on CPU
 
     def competes_with(self, other: WorkerHandle) -> bool:
         """Whether the two compute on the same thing: CPU workers on one machine whose cores
-        overlap (or that did not say which). A GPU worker competes with none (a GPU each)."""
-        if self.device != "cpu" or other.device != "cpu" or self.machine != other.machine:
+        overlap (or that did not say which), GPU workers on one machine with the same GPU. A GPU
+        worker that did not say which GPU it holds competes with none."""
+        if self.machine != other.machine:
             return False
-        return not (self.cores and other.cores) or bool(self.cores & other.cores)
+        if self.device == "cpu" and other.device == "cpu":
+            return not (self.cores and other.cores) or bool(self.cores & other.cores)
+        if self.device == "cpu" or other.device == "cpu":
+            return False
+        return bool(self.accelerator) and self.accelerator == other.accelerator
 
 
 def describe_cores(cores: frozenset[int]) -> str:
@@ -362,11 +368,13 @@ class WorkerPool:
                 log.warning("worker %s left: %s", w.address, reason)
             w.healthy, w.reason = False, reason or "unreachable"
             return
-        w.machine, w.cores = info.machine, frozenset(info.cores)
+        w.machine, w.cores, w.accelerator = info.machine, frozenset(info.cores), info.accelerator
         if not w.healthy:
             where = info.device
             if info.device == "cpu" and info.cores:
                 where += f" cores {describe_cores(w.cores)} of machine {info.machine[:8] or '?'}"
+            elif info.accelerator:
+                where += f" {info.accelerator} of machine {info.machine[:8] or '?'}"
             log.info("worker %s admitted (%s)", w.address, where)
             self._changed.set()
         w.healthy, w.reason, w.device = True, "", info.device
@@ -393,9 +401,9 @@ class WorkerPool:
         """The healthy workers, grouped by what they compute on (list order kept): the views a
         request puts on one group go to one worker of it, and the groups compute side by side.
 
-        ``pack``: one group; ``spread``: a group per worker; ``auto``: a group per GPU worker and
-        per set of CPU workers that compete for cores (one machine, overlapping cores: on one
-        machine, passes of several workers would only take turns on the same cores).
+        ``pack``: one group; ``spread``: a group per worker; ``auto``: a group per set of workers
+        that compete (``competes_with``: one machine, and overlapping CPU cores or the same GPU:
+        there, passes of several workers would only take turns on the same cores or GPU).
         """
         healthy = self.healthy
         if self.placement == "pack":

@@ -83,6 +83,14 @@ def allowed_cores() -> list[int]:
     return list(range(os.cpu_count() or 1))
 
 
+def accelerator_id(device: torch.device) -> str:
+    """A GPU's own id, the same in every process that holds it (its UUID; the index is not:
+    CUDA_VISIBLE_DEVICES renumbers devices per process); empty on CPU or where the device has none."""
+    if device.type != "cuda":
+        return ""
+    return str(getattr(torch.cuda.get_device_properties(device), "uuid", "") or "")
+
+
 @dataclass
 class _Job:
     kind: str  # "encode" or "step"
@@ -98,6 +106,7 @@ class ModelEngine:
         self.loaded = loaded
         self.policy = loaded.policy
         self.device = next(self.policy.parameters()).device
+        self.accelerator = accelerator_id(self.device)  # which GPU, for the server's placement
         self.normalizer = loaded.normalizer
         self.sha256 = checkpoint_sha256(loaded.path)
         self.model_id = model_id(loaded.path)
@@ -393,6 +402,7 @@ class DenoiseWorkerService(policy_pb2_grpc.DenoiseWorkerServicer):
             max_streams=self.max_streams,
             machine=self.machine,
             cores=self.cores,
+            accelerator=e.accelerator,
         )
 
     def Denoise(self, request_iterator, context):

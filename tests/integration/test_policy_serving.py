@@ -177,12 +177,31 @@ def test_auto_placement_spreads_views_over_workers_on_cores_of_their_own(checkpo
         infos = [worker_info(w) for _, w in workers]
         assert [list(i.cores) for i in infos] == [[a], [b], [a]]
         boot_id = Path("/proc/sys/kernel/random/boot_id").read_text().strip()
-        assert {i.machine for i in infos} == {boot_id}
+        assert {i.machine for i in infos} == {boot_id} and {i.accelerator for i in infos} == {""}  # no GPU
         with PolicyClient(addr) as client:
             for i, (f, s) in enumerate(observations[:2]):
                 chunk = client.get_action(f, s, seed=i)
                 assert chunk.views_used == ("F", "FL", "FR") and not chunk.degraded
         assert [worker_info(w).streams for _, w in workers] == [4, 2, 0]
+    finally:
+        stop(server)
+        for p, _ in workers:
+            stop(p)
+
+
+@pytest.mark.gpu
+def test_auto_placement_packs_views_on_workers_that_share_a_gpu(checkpoint, observations):
+    """Two workers on one GPU report its UUID, the same one: placement auto puts each request's
+    views on one of them (one batched pass per step) rather than on both taking turns on the GPU."""
+    workers = [start_worker(checkpoint, "--device", "cuda") for _ in range(2)]
+    server, addr = start_server(checkpoint, "--views", "F,FL,FR", *sum((["--worker", w] for _, w in workers), []))
+    try:
+        infos = [worker_info(w) for _, w in workers]
+        assert infos[0].accelerator and infos[0].accelerator == infos[1].accelerator
+        with PolicyClient(addr) as client:
+            for i, (f, s) in enumerate(observations[:2]):
+                assert client.get_action(f, s, seed=i).views_used == ("F", "FL", "FR")
+        assert sorted(worker_info(w).streams for _, w in workers) == [0, 6]
     finally:
         stop(server)
         for p, _ in workers:

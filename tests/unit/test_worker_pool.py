@@ -40,20 +40,21 @@ def test_a_worker_address_with_commas_stays_one_address():
     assert cfg.worker == [many, "10.0.0.5:7001"]
 
 
-def _pool(placement: str, devices: list[str], streams: list[int], machines=None, cores=None):
+def _pool(placement: str, devices: list[str], streams: list[int], machines=None, cores=None, gpus=None):
     """A pool of admitted workers (channels to nowhere: placing opens no call); by default all on
-    one machine with the same two cores."""
+    one machine with the same two cores, and GPU workers that did not say which GPU they hold."""
     import asyncio
 
     from services.policy.server import WorkerPool
 
     machines = machines or ["m"] * len(devices)
     cores = cores or [{0, 1}] * len(devices)
+    gpus = gpus or [""] * len(devices)
 
     async def make():
         pool = WorkerPool([f"127.0.0.1:{7001 + i}" for i in range(len(devices))], "sha", placement=placement)
-        for w, dev, n, m, c in zip(pool.workers, devices, streams, machines, cores):
-            w.healthy, w.device, w.streams, w.machine, w.cores = True, dev, n, m, frozenset(c)
+        for w, dev, n, m, c, g in zip(pool.workers, devices, streams, machines, cores, gpus):
+            w.healthy, w.device, w.streams, w.machine, w.cores, w.accelerator = True, dev, n, m, frozenset(c), g
         return pool
 
     return asyncio.run(make())
@@ -109,6 +110,21 @@ def test_auto_spreads_over_machines_and_disjoint_cores_and_packs_where_cores_are
     # a GPU beside a machine's CPU workers: the GPU is a group of its own
     gpu = _pool("auto", ["cpu", "cpu", "cuda:0"], [0] * 3)
     assert _where(gpu.place(["F", "FL", "FR"])) == {"F": 0, "FL": 2, "FR": 0}
+
+
+def test_auto_packs_workers_that_share_a_gpu_and_spreads_over_gpus():
+    # `serve --workers 3 --device cuda` on a one-GPU machine: three workers on one GPU (one UUID)
+    # would only take turns on it; one worker computes a request's views in one batched pass
+    one = _pool("auto", ["cuda:0"] * 3, [0] * 3, gpus=["GPU-a"] * 3)
+    assert len(one.units()) == 1 and set(_where(one.place(["F", "FL", "FR"])).values()) == {0}
+    assert _where(one.place(["F"])) == {"F": 1}  # the next request: the group's least-loaded worker
+    # the index says nothing (CUDA_VISIBLE_DEVICES renumbers per process): two "cuda:0" on two GPUs
+    two = _pool("auto", ["cuda:0", "cuda:0", "cuda:1"], [0] * 3, gpus=["GPU-a", "GPU-b", "GPU-a"])
+    assert [[int(w.address[-1]) - 1 for w in u] for u in two.units()] == [[0, 2], [1]]
+    assert _where(two.place(["F", "FL", "FR"])) == {"F": 0, "FL": 1, "FR": 0}
+    # the same id on two machines is not one GPU; a GPU and a CPU worker never compete
+    apart = _pool("auto", ["cuda:0", "cuda:0", "cpu"], [0] * 3, machines=["a", "b", "a"], gpus=["GPU-a", "GPU-a", ""])
+    assert len(apart.units()) == 3
 
 
 def test_no_healthy_worker_places_nothing_and_a_bad_placement_is_refused():
