@@ -18,6 +18,8 @@ import signal
 import sys
 from pathlib import Path
 
+from services.policy.config import PLACEMENTS  # pydantic only, as the CLI's --log-level check
+
 
 def _load(model, args: argparse.Namespace, flags: list[str], section: str):
     """The config from --config, env, the flags given and --set; None (after one error line) if invalid.
@@ -140,7 +142,7 @@ def add_policy_commands(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--in-process", action="store_true", help="compute every view in this process")
     p.add_argument(
         "--placement",
-        choices=["auto", "pack", "spread"],
+        choices=PLACEMENTS,
         help="a request's views on workers: all on one (pack), one each (spread), "
         "or auto: one per GPU and per machine (or set of cores), packed on a machine's CPU (default)",
     )

@@ -8,8 +8,7 @@ from pydantic import Field, model_validator
 
 from services.core.config import Frozen, LogLevel
 
-# how a request's views are put on workers (WorkerPool.place); `viewscale serve --placement` lists
-# them again, so that building the CLI's parser does not import this module
+# how a request's views are put on workers (WorkerPool.place; `viewscale serve --placement`)
 Placement = Literal["auto", "pack", "spread"]
 PLACEMENTS: tuple[str, ...] = get_args(Placement)
 
