@@ -144,7 +144,7 @@ def add_policy_commands(subparsers: argparse._SubParsersAction) -> None:
         "--placement",
         choices=PLACEMENTS,
         help="a request's views on workers: all on one (pack), one each (spread), "
-        "or auto: one per GPU and per machine (or set of cores), packed on a machine's CPU (default)",
+        "or auto: one per GPU and per machine (or set of cores), packed where workers share cores or a GPU (default)",
     )
     p.add_argument("--device", help="cpu, cuda or cuda:N (default cpu)")
     p.add_argument("--threads", type=int, help="intra-op threads per model (default 1)")
