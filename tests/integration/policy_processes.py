@@ -53,6 +53,11 @@ def start_server(ckpt: Path, *args: str, env=None) -> tuple[subprocess.Popen, st
     return start(["serve", "--checkpoint", str(ckpt), "--listen", "127.0.0.1:0", *args], "policy", env)
 
 
+def worker_flags(workers: list[tuple[subprocess.Popen, str]]) -> list[str]:
+    """``--worker ADDR`` for each started worker (start_worker's results), for start_server."""
+    return [flag for _, address in workers for flag in ("--worker", address)]
+
+
 def worker_info(address: str) -> policy_pb2.WorkerInfo:
     with grpc.insecure_channel(address) as ch:
         return policy_pb2_grpc.DenoiseWorkerStub(ch).GetWorkerInfo(policy_pb2.WorkerInfoRequest(), timeout=10)

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 import torch
 from grpc_health.v1 import health_pb2, health_pb2_grpc
-from policy_processes import start, start_server, start_worker, stop, worker_info
+from policy_processes import start, start_server, start_worker, stop, worker_flags, worker_info
 from polling import wait_for
 
 from services.core.action_spaces import from_space
@@ -136,7 +136,7 @@ def test_fan_out_to_workers_gives_the_in_process_actions(checkpoint, observation
             "F,FL,FR",
             "--placement",
             "spread",
-            *sum((["--worker", a] for _, a in workers[:3]), []),
+            *worker_flags(workers[:3]),
         ),
         start_server(checkpoint, "--views", "F,FL,FR", "--worker", workers[3][1]),
         start_server(checkpoint, "--views", "F,FL,FR", "--worker", balanced),
@@ -172,7 +172,7 @@ def test_auto_placement_spreads_views_over_workers_on_cores_of_their_own(checkpo
     -- and none to the third, which would take turns with the first on its core."""
     a, b = sorted(os.sched_getaffinity(0))[:2]
     workers = [start_worker(checkpoint, prefix=("taskset", "-c", str(c))) for c in (a, b, a)]
-    server, addr = start_server(checkpoint, "--views", "F,FL,FR", *sum((["--worker", w] for _, w in workers), []))
+    server, addr = start_server(checkpoint, "--views", "F,FL,FR", *worker_flags(workers))
     try:
         infos = [worker_info(w) for _, w in workers]
         assert [list(i.cores) for i in infos] == [[a], [b], [a]]
@@ -194,7 +194,7 @@ def test_auto_placement_packs_views_on_workers_that_share_a_gpu(checkpoint, obse
     """Two workers on one GPU report its UUID, the same one: placement auto puts each request's
     views on one of them (one batched pass per step) rather than on both taking turns on the GPU."""
     workers = [start_worker(checkpoint, "--device", "cuda") for _ in range(2)]
-    server, addr = start_server(checkpoint, "--views", "F,FL,FR", *sum((["--worker", w] for _, w in workers), []))
+    server, addr = start_server(checkpoint, "--views", "F,FL,FR", *worker_flags(workers))
     try:
         infos = [worker_info(w) for _, w in workers]
         assert infos[0].accelerator and infos[0].accelerator == infos[1].accelerator
@@ -268,7 +268,7 @@ def test_a_frozen_or_killed_worker_moves_its_views_and_is_readmitted(checkpoint,
     server answers; resumed, and restarted, it is re-admitted."""
     ports = [free_tcp_port() for _ in range(3)]
     workers = [start_worker(checkpoint, port=p) for p in ports]
-    server, addr = start_server(checkpoint, "--views", "F,FL,FR", *sum((["--worker", a] for _, a in workers), []))
+    server, addr = start_server(checkpoint, "--views", "F,FL,FR", *worker_flags(workers))
     robots = Robots(addr, observations)
     try:
         with robots:
