@@ -462,15 +462,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from services.core.runtime import die_with_parent
+    from services.core.runtime import LOG_FORMAT, die_with_parent
 
     die_with_parent()  # started by a session or an experiment: do not outlive it
     parser = build_parser()
     args = parser.parse_args(argv)
-    logging.basicConfig(
-        level=getattr(logging, args.log_level),
-        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
-    )
+    logging.basicConfig(level=getattr(logging, args.log_level), format=LOG_FORMAT)
     return int(args.func(args) or 0)
 
 

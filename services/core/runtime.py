@@ -13,13 +13,15 @@ from pathlib import Path
 
 from services.core.config import log_level_name
 
+LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"  # every service's lines, and the CLI's
+
 
 def configure_logging(level: str = "INFO") -> None:
     """Called once from a service's main (never at import time). The service's level is set even
     where logging was configured before it (the ``viewscale`` CLI's ``--log-level``, WARNING by
     default): ``viewscale serve`` logs at its ``log_level`` setting, as ``python -m`` does."""
     lvl = getattr(logging, log_level_name(level))  # a name that is no level raises, never INFO in silence
-    logging.basicConfig(level=lvl, format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stderr)
+    logging.basicConfig(level=lvl, format=LOG_FORMAT, stream=sys.stderr)
     logging.getLogger().setLevel(lvl)
 
 
