@@ -85,10 +85,11 @@ def allowed_cores() -> list[int]:
 
 def accelerator_id(device: torch.device) -> str:
     """A GPU's own id, the same in every process that holds it (its UUID; the index is not:
-    CUDA_VISIBLE_DEVICES renumbers devices per process); empty on CPU."""
+    CUDA_VISIBLE_DEVICES renumbers devices per process); empty on CPU or where the device has none."""
     if device.type != "cuda":
         return ""
-    return str(torch.cuda.get_device_properties(device).uuid)
+    # ROCm builds (device type cuda as well) have the property only since 2024's torch
+    return str(getattr(torch.cuda.get_device_properties(device), "uuid", "") or "")
 
 
 @dataclass
