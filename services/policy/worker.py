@@ -85,9 +85,17 @@ def allowed_cores() -> list[int]:
 
 def accelerator_id(device: torch.device) -> str:
     """A GPU's own id, the same in every process that holds it (its UUID; the index is not:
-    CUDA_VISIBLE_DEVICES renumbers devices per process); empty on CPU or where the device has none."""
+    CUDA_VISIBLE_DEVICES renumbers devices per process); empty on CPU or where the device has none.
+
+    A MIG slice is a GPU of its own for placement: a process sees one slice, named in
+    CUDA_VISIBLE_DEVICES (``MIG-<uuid>``, or ``MIG-GPU-<uuid>/<gi>/<ci>``), and that name is its id.
+    Whether torch's UUID tells two slices of one GPU apart is not something to rely on."""
     if device.type != "cuda":
         return ""
+    visible = [d.strip() for d in os.environ.get("CUDA_VISIBLE_DEVICES", "").split(",")]
+    index = device.index or 0
+    if index < len(visible) and visible[index].startswith("MIG-"):
+        return visible[index]
     # ROCm builds (device type cuda as well) have the property only since 2024's torch
     return str(getattr(torch.cuda.get_device_properties(device), "uuid", "") or "")
 

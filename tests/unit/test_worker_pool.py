@@ -6,10 +6,12 @@ from __future__ import annotations
 import argparse
 
 import pytest
+import torch
 
 from services.policy.cli import _load, add_policy_commands
 from services.policy.config import ServerConfig
 from services.policy.server import may_balance
+from services.policy.worker import accelerator_id
 
 
 @pytest.mark.parametrize(
@@ -125,6 +127,27 @@ def test_auto_packs_workers_that_share_a_gpu_and_spreads_over_gpus():
     # the same id on two machines is not one GPU; a GPU and a CPU worker never compete
     apart = _pool("auto", ["cuda:0", "cuda:0", "cpu"], [0] * 3, machines=["a", "b", "a"], gpus=["GPU-a", "GPU-a", ""])
     assert len(apart.units()) == 3
+
+
+MIG_A = "MIG-5c1f2e3d-0a1b-5c2d-8e3f-4a5b6c7d8e9f"
+MIG_B = "MIG-GPU-41255406-c9af-f94b-4ebf-9d57ad1853da/1/0"  # the older form, GPU UUID/GI/CI
+
+
+@pytest.mark.parametrize(
+    "visible, index, want",
+    [(MIG_A, 0, MIG_A), (MIG_B, 0, MIG_B), (f" {MIG_A} ", 0, MIG_A), (f"GPU-x,{MIG_B}", 1, MIG_B)],
+)
+def test_a_mig_slice_is_named_by_its_cuda_visible_devices_entry(monkeypatch, visible, index, want):
+    # (no CUDA here: a MIG entry is answered before any call into CUDA, so this runs on CPU)
+    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", visible)
+    assert accelerator_id(torch.device("cuda", index)) == want
+    assert accelerator_id(torch.device("cpu")) == ""
+
+
+def test_workers_on_two_mig_slices_of_one_gpu_are_spread():
+    # two slices are two GPUs for placement: a request's views go to both, in parallel
+    pool = _pool("auto", ["cuda:0", "cuda:0"], [0, 0], gpus=[MIG_A, MIG_B])
+    assert len(pool.units()) == 2 and _where(pool.place(["F", "FL"])) == {"F": 0, "FL": 1}
 
 
 def test_no_healthy_worker_places_nothing_and_a_bad_placement_is_refused():
