@@ -1066,7 +1066,8 @@ async def serve_policy(cfg, stop: asyncio.Event, worker_addresses: list[str], an
         await pool.start()
         await pool.wait_ready(1, cfg.worker_ready_s)
         service.backend = lambda: RemoteDenoiser(pool, spec)
-        mode = f"{len(worker_addresses)} workers"
+        ready, n = len(pool.healthy), len(worker_addresses)
+        mode = f"{n} workers" if ready == n else f"{ready} of {n} workers ready (the rest are admitted as they answer)"
     await set_serving(health, [POLICY_SERVICE], True)
     log.info("policy %s on %s: %s, views %s, %s", spec.model_id, address, spec.action_space, ",".join(views), mode)
     announce(f"ready policy {address}")

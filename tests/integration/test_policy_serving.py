@@ -629,7 +629,7 @@ def test_a_robot_leaves_a_frozen_policy_server_after_a_keepalive(checkpoint, obs
 
 
 def test_health_is_not_serving_until_a_worker_is_ready(checkpoint):
-    port = free_tcp_port()
+    port, never = free_tcp_port(), free_tcp_port()  # a worker that starts late, and one that never does
     proc = subprocess.Popen(
         [
             sys.executable,
@@ -642,6 +642,8 @@ def test_health_is_not_serving_until_a_worker_is_ready(checkpoint):
             "127.0.0.1:0",
             "--worker",
             f"127.0.0.1:{port}",
+            "--worker",
+            f"127.0.0.1:{never}",
         ],
         cwd=ROOT,
         stdout=subprocess.PIPE,
@@ -666,6 +668,8 @@ def test_health_is_not_serving_until_a_worker_is_ready(checkpoint):
         stop(proc)
         if worker:
             stop(worker[0])
+    # serving from the first worker on, and saying that the other is not there yet
+    assert "1 of 2 workers ready" in proc.stderr.read()
 
 
 def test_reflection_lists_the_services(checkpoint):
