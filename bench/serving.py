@@ -2,7 +2,7 @@
 
     python bench/serving.py                                  # tiny: V = 1, 3, 5; 1/4/8 clients
     python bench/serving.py --presets tiny,paper --paper-requests 3
-    python bench/serving.py --presets paper --device cuda     # on a GPU
+    python bench/serving.py --presets paper --device cuda --precision fp32,bf16   # on a GPU
     python bench/serving.py --views 3 --fanout-workers 3 --placements pack,spread
 
 Records two scripted lift episodes with the five15 rig, builds a camera-space dataset, and makes
@@ -214,6 +214,11 @@ def main() -> None:
     ap.add_argument("--paper-clients", default="1", help="clients for paper presets")
     ap.add_argument("--size", type=int, default=84)
     ap.add_argument("--device", default="cpu")
+    ap.add_argument(
+        "--precision",
+        default="fp32",
+        help="fp32, bf16 (bfloat16 autocast), or both: fp32,bf16 (the bf16 rows' preset: PRESET-bf16)",
+    )
     ap.add_argument("--fanout-workers", type=int, default=1, help="worker processes per fan-out server")
     ap.add_argument(
         "--placements", default="auto", help="fan-out placements to compare (auto, pack, spread; comma-separated)"
@@ -232,12 +237,16 @@ def main() -> None:
         ds = make_dataset(Path(tmp), args.size)
         frames, states = observation(ds)
         rows = []
-        for preset in args.presets.split(","):
-            ckpt = make_checkpoint(ds, Path(tmp) / preset, preset, args.device)
+        checkpoints: dict[str, Path] = {}
+        for preset, precision in [(p, a) for p in args.presets.split(",") for a in args.precision.split(",")]:
+            if preset not in checkpoints:
+                checkpoints[preset] = make_checkpoint(ds, Path(tmp) / preset, preset, args.device)
+            ckpt = checkpoints[preset]
+            label = preset if precision == "fp32" else f"{preset}-{precision}"  # the rows' "preset"
             paper = preset.startswith("paper")
             clients_list = [int(c) for c in (args.paper_clients if paper else args.clients).split(",")]
             requests = args.paper_requests if paper else args.requests
-            dev = ["--device", args.device]
+            dev = ["--device", args.device, "--precision", precision]
             bench_py = (str(Path(__file__).resolve()),)
             echo, echo_addr = start(["--echo-server", "--echo-gap-ms", "0"], "echo", bench_py)
             idle, idle_addr = start(["--echo-server", "--echo-gap-ms", str(args.echo_gap_ms)], "echo", bench_py)
@@ -255,7 +264,9 @@ def main() -> None:
                     workers = [start(wcmd, "worker") for _ in range(args.fanout_workers)]
                     procs += [p for p, _ in workers]
                     to = sum((["--worker", a] for _, a in workers), [])
-                    proc, addr = start([*srv, *to, "--set", f"placement={placement}"], "policy")
+                    proc, addr = start(
+                        [*srv, *to, "--precision", precision, "--set", f"placement={placement}"], "policy"
+                    )
                     procs.append(proc)
                     servers[name].append(addr)
             try:
@@ -280,7 +291,8 @@ def main() -> None:
                     lat = [g[0] * 1e3 for g in got]
                     rows.append(
                         {
-                            "preset": preset,
+                            "preset": label,
+                            "precision": precision,
                             "backend": name,
                             "views": n_views,
                             "clients": clients,
@@ -293,7 +305,8 @@ def main() -> None:
                 for backend, ms in (("grpc-echo", echo_ms), ("grpc-echo-idle", idle_ms)):
                     rows.append(
                         {
-                            "preset": preset,
+                            "preset": label,
+                            "precision": precision,
                             "backend": backend,
                             "n": len(ms),
                             "rtt_p50_ms": round(pct(ms, 0.5), 3),
@@ -316,21 +329,22 @@ def main() -> None:
         )
 
     targets = {}
-    for preset in args.presets.split(","):
+    for preset in dict.fromkeys(r["preset"] for r in rows):  # each preset and precision, in run order
+        key = preset.replace("-", "_")
         for name in sorted({r["backend"] for r in rows if r["backend"].startswith("fan-out")}):
             tag = name.replace("fan-out", "fanout").replace("-", "_")  # fanout, or fanout_pack, ...
             for v in (1, 3, 5):
                 a, b = row(preset, name, v, 1), row(preset, "in-process", v, 1)
                 if a and b:
-                    targets[f"{preset}_{tag}_extra_ms_per_step_V{v}"] = round((a["p50_ms"] - b["p50_ms"]) / 10, 3)
-                    targets[f"{preset}_{tag}_extra_step_p50_ms_V{v}"] = round(a["step_p50_ms"] - b["step_p50_ms"], 3)
+                    targets[f"{key}_{tag}_extra_ms_per_step_V{v}"] = round((a["p50_ms"] - b["p50_ms"]) / 10, 3)
+                    targets[f"{key}_{tag}_extra_step_p50_ms_V{v}"] = round(a["step_p50_ms"] - b["step_p50_ms"], 3)
         for backend, target in (("grpc-echo", "round_trip_floor_ms"), ("grpc-echo-idle", "round_trip_after_idle_ms")):
             floor = next((r for r in rows if r["preset"] == preset and r["backend"] == backend), None)
             if floor:
-                targets[f"{preset}_grpc_{target}"] = floor["rtt_p50_ms"]
+                targets[f"{key}_grpc_{target}"] = floor["rtt_p50_ms"]
         one, three = row(preset, "in-process", 1, 1), row(preset, "in-process", 3, 1)
         if one and three:
-            targets[f"{preset}_V3_over_V1_in_process"] = round(three["p50_ms"] / one["p50_ms"], 3)
+            targets[f"{key}_V3_over_V1_in_process"] = round(three["p50_ms"] / one["p50_ms"], 3)
     settings = {
         "fanout_workers": args.fanout_workers,
         "placements": args.placements,

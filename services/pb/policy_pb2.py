@@ -26,7 +26,7 @@ from services.pb import common_pb2 as services_dot_pb_dot_common__pb2
 from services.pb import control_pb2 as services_dot_pb_dot_control__pb2
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x18services/pb/policy.proto\x12\x0cviewscale.v1\x1a\x18services/pb/common.proto\x1a\x19services/pb/control.proto\"\x13\n\x11PolicyInfoRequest\"|\n\nCameraInfo\x12\x0c\n\x04name\x18\x01 \x01(\t\x12\r\n\x05width\x18\x02 \x01(\r\x12\x0e\n\x06height\x18\x03 \x01(\r\x12\t\n\x01K\x18\x04 \x03(\x01\x12\r\n\x05R_ext\x18\x05 \x03(\x01\x12\x10\n\x08position\x18\x06 \x03(\x01\x12\x15\n\rdefault_gamma\x18\x07 \x01(\x01\"\x83\x03\n\nPolicyInfo\x12\x15\n\rproto_version\x18\x01 \x01(\r\x12\x10\n\x08model_id\x18\x02 \x01(\t\x12\x19\n\x11\x63heckpoint_sha256\x18\x03 \x01(\t\x12\x14\n\x0c\x61\x63tion_space\x18\x04 \x01(\t\x12\x13\n\x0bstate_frame\x18\x05 \x01(\t\x12\x13\n\x0bobs_horizon\x18\x06 \x01(\r\x12\x14\n\x0cpred_horizon\x18\x07 \x01(\r\x12\x16\n\x0en_action_steps\x18\x08 \x01(\r\x12\x12\n\ncontrol_hz\x18\t \x01(\x01\x12\x13\n\x0bimage_width\x18\n \x01(\r\x12\x14\n\x0cimage_height\x18\x0b \x01(\r\x12\x12\n\nddim_steps\x18\x0c \x01(\r\x12)\n\x07\x63\x61meras\x18\r \x03(\x0b\x32\x18.viewscale.v1.CameraInfo\x12\x15\n\runconditional\x18\x0e \x01(\x08\x12\x15\n\rdefault_views\x18\x0f \x03(\t\x12\x17\n\x0fserver_instance\x18\x10 \x01(\t\"V\n\x05\x46rame\x12\x0e\n\x04jpeg\x18\x01 \x01(\x0cH\x00\x12#\n\x03rgb\x18\x02 \x01(\x0b\x32\x14.viewscale.v1.TensorH\x00\x12\x10\n\x08stamp_ns\x18\x03 \x01(\x04\x42\x06\n\x04\x64\x61ta\"A\n\x0c\x43\x61meraFrames\x12\x0c\n\x04name\x18\x01 \x01(\t\x12#\n\x06\x66rames\x18\x02 \x03(\x0b\x32\x13.viewscale.v1.Frame\"X\n\x0bStateSample\x12\x10\n\x08stamp_ns\x18\x01 \x01(\x04\x12\x0f\n\x07\x65\x65\x66_pos\x18\x02 \x03(\x01\x12\x15\n\reef_quat_wxyz\x18\x03 \x03(\x01\x12\x0f\n\x07gripper\x18\x04 \x01(\x01\"\xaf\x02\n\rActionRequest\x12\x12\n\nsession_id\x18\x01 \x01(\t\x12\x0b\n\x03seq\x18\x02 \x01(\x04\x12+\n\x07\x63\x61meras\x18\x03 \x03(\x0b\x32\x1a.viewscale.v1.CameraFrames\x12)\n\x06states\x18\x04 \x03(\x0b\x32\x19.viewscale.v1.StateSample\x12\r\n\x05views\x18\x05 \x03(\t\x12\x35\n\x05gamma\x18\x06 \x03(\x0b\x32&.viewscale.v1.ActionRequest.GammaEntry\x12\x11\n\x04seed\x18\x07 \x01(\x04H\x00\x88\x01\x01\x12\x15\n\runconditional\x18\x08 \x01(\x08\x1a,\n\nGammaEntry\x12\x0b\n\x03key\x18\x01 \x01(\t\x12\r\n\x05value\x18\x02 \x01(\x01:\x02\x38\x01\x42\x07\n\x05_seed\"\x9d\x01\n\x06Timing\x12\x11\n\tdecode_ms\x18\x01 \x01(\x01\x12\x11\n\tencode_ms\x18\x02 \x01(\x01\x12\x13\n\x0bstep_p50_ms\x18\x03 \x01(\x01\x12\x13\n\x0bstep_max_ms\x18\x04 \x01(\x01\x12\x10\n\x08total_ms\x18\x05 \x01(\x01\x12\x19\n\x11server_receive_ns\x18\x06 \x01(\x04\x12\x16\n\x0eserver_send_ns\x18\x07 \x01(\x04\"\x89\x02\n\x0b\x41\x63tionReply\x12\x0b\n\x03seq\x18\x01 \x01(\x04\x12(\n\x07\x61\x63tions\x18\x02 \x03(\x0b\x32\x17.viewscale.v1.EefAction\x12\x13\n\x0bstart_index\x18\x03 \x01(\r\x12\x14\n\x0cobs_stamp_ns\x18\x04 \x01(\x04\x12\x12\n\nviews_used\x18\x05 \x03(\t\x12\x10\n\x08\x64\x65graded\x18\x06 \x01(\x08\x12\x18\n\x10\x64\x65graded_reasons\x18\x07 \x03(\t\x12$\n\x06timing\x18\x08 \x01(\x0b\x32\x14.viewscale.v1.Timing\x12\x19\n\x11\x63heckpoint_sha256\x18\t \x01(\t\x12\x17\n\x0fserver_instance\x18\n \x01(\t\">\n\x0cResetRequest\x12\x12\n\nsession_id\x18\x01 \x01(\t\x12\x11\n\x04seed\x18\x02 \x01(\x04H\x00\x88\x01\x01\x42\x07\n\x05_seed\"\x1d\n\nResetReply\x12\x0f\n\x07\x65xisted\x18\x01 \x01(\x08\"\xc2\x01\n\x12\x44\x65noiseObservation\x12\x19\n\x11\x63heckpoint_sha256\x18\x01 \x01(\t\x12\x0c\n\x04view\x18\x02 \x01(\t\x12$\n\x06\x66rames\x18\x03 \x01(\x0b\x32\x14.viewscale.v1.Tensor\x12#\n\x05state\x18\x04 \x01(\x0b\x32\x14.viewscale.v1.Tensor\x12\x15\n\runconditional\x18\x05 \x01(\x08\x12\r\n\x05group\x18\x06 \x01(\t\x12\x12\n\ngroup_size\x18\x07 \x01(\r\"9\n\x0b\x44\x65noiseStep\x12\t\n\x01k\x18\x01 \x01(\r\x12\x1f\n\x01x\x18\x02 \x01(\x0b\x32\x14.viewscale.v1.Tensor\"{\n\x0e\x44\x65noiseRequest\x12\x37\n\x0bobservation\x18\x01 \x01(\x0b\x32 .viewscale.v1.DenoiseObservationH\x00\x12)\n\x04step\x18\x02 \x01(\x0b\x32\x19.viewscale.v1.DenoiseStepH\x00\x42\x05\n\x03msg\"o\n\x0c\x44\x65noiseReply\x12!\n\x03\x65ps\x18\x01 \x01(\x0b\x32\x14.viewscale.v1.Tensor\x12(\n\neps_uncond\x18\x02 \x01(\x0b\x32\x14.viewscale.v1.Tensor\x12\x12\n\ncompute_ms\x18\x03 \x01(\x01\"\x13\n\x11WorkerInfoRequest\"\xef\x01\n\nWorkerInfo\x12\x19\n\x11\x63heckpoint_sha256\x18\x01 \x01(\t\x12\x10\n\x08model_id\x18\x02 \x01(\t\x12\x0e\n\x06\x64\x65vice\x18\x03 \x01(\t\x12\x0f\n\x07threads\x18\x04 \x01(\r\x12\x11\n\tmax_batch\x18\x05 \x01(\r\x12\x0f\n\x07streams\x18\x06 \x01(\x04\x12\x0e\n\x06passes\x18\x07 \x01(\x04\x12\x15\n\rbatched_items\x18\x08 \x01(\x04\x12\x13\n\x0bmax_streams\x18\t \x01(\r\x12\x0f\n\x07machine\x18\n \x01(\t\x12\r\n\x05\x63ores\x18\x0b \x03(\r\x12\x13\n\x0b\x61\x63\x63\x65lerator\x18\x0c \x01(\t2\xd8\x01\n\x06Policy\x12J\n\rGetPolicyInfo\x12\x1f.viewscale.v1.PolicyInfoRequest\x1a\x18.viewscale.v1.PolicyInfo\x12\x43\n\tGetAction\x12\x1b.viewscale.v1.ActionRequest\x1a\x19.viewscale.v1.ActionReply\x12=\n\x05Reset\x12\x1a.viewscale.v1.ResetRequest\x1a\x18.viewscale.v1.ResetReply2\xa4\x01\n\rDenoiseWorker\x12G\n\x07\x44\x65noise\x12\x1c.viewscale.v1.DenoiseRequest\x1a\x1a.viewscale.v1.DenoiseReply(\x01\x30\x01\x12J\n\rGetWorkerInfo\x12\x1f.viewscale.v1.WorkerInfoRequest\x1a\x18.viewscale.v1.WorkerInfob\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x18services/pb/policy.proto\x12\x0cviewscale.v1\x1a\x18services/pb/common.proto\x1a\x19services/pb/control.proto\"\x13\n\x11PolicyInfoRequest\"|\n\nCameraInfo\x12\x0c\n\x04name\x18\x01 \x01(\t\x12\r\n\x05width\x18\x02 \x01(\r\x12\x0e\n\x06height\x18\x03 \x01(\r\x12\t\n\x01K\x18\x04 \x03(\x01\x12\r\n\x05R_ext\x18\x05 \x03(\x01\x12\x10\n\x08position\x18\x06 \x03(\x01\x12\x15\n\rdefault_gamma\x18\x07 \x01(\x01\"\x96\x03\n\nPolicyInfo\x12\x15\n\rproto_version\x18\x01 \x01(\r\x12\x10\n\x08model_id\x18\x02 \x01(\t\x12\x19\n\x11\x63heckpoint_sha256\x18\x03 \x01(\t\x12\x14\n\x0c\x61\x63tion_space\x18\x04 \x01(\t\x12\x13\n\x0bstate_frame\x18\x05 \x01(\t\x12\x13\n\x0bobs_horizon\x18\x06 \x01(\r\x12\x14\n\x0cpred_horizon\x18\x07 \x01(\r\x12\x16\n\x0en_action_steps\x18\x08 \x01(\r\x12\x12\n\ncontrol_hz\x18\t \x01(\x01\x12\x13\n\x0bimage_width\x18\n \x01(\r\x12\x14\n\x0cimage_height\x18\x0b \x01(\r\x12\x12\n\nddim_steps\x18\x0c \x01(\r\x12)\n\x07\x63\x61meras\x18\r \x03(\x0b\x32\x18.viewscale.v1.CameraInfo\x12\x15\n\runconditional\x18\x0e \x01(\x08\x12\x15\n\rdefault_views\x18\x0f \x03(\t\x12\x17\n\x0fserver_instance\x18\x10 \x01(\t\x12\x11\n\tprecision\x18\x11 \x01(\t\"V\n\x05\x46rame\x12\x0e\n\x04jpeg\x18\x01 \x01(\x0cH\x00\x12#\n\x03rgb\x18\x02 \x01(\x0b\x32\x14.viewscale.v1.TensorH\x00\x12\x10\n\x08stamp_ns\x18\x03 \x01(\x04\x42\x06\n\x04\x64\x61ta\"A\n\x0c\x43\x61meraFrames\x12\x0c\n\x04name\x18\x01 \x01(\t\x12#\n\x06\x66rames\x18\x02 \x03(\x0b\x32\x13.viewscale.v1.Frame\"X\n\x0bStateSample\x12\x10\n\x08stamp_ns\x18\x01 \x01(\x04\x12\x0f\n\x07\x65\x65\x66_pos\x18\x02 \x03(\x01\x12\x15\n\reef_quat_wxyz\x18\x03 \x03(\x01\x12\x0f\n\x07gripper\x18\x04 \x01(\x01\"\xaf\x02\n\rActionRequest\x12\x12\n\nsession_id\x18\x01 \x01(\t\x12\x0b\n\x03seq\x18\x02 \x01(\x04\x12+\n\x07\x63\x61meras\x18\x03 \x03(\x0b\x32\x1a.viewscale.v1.CameraFrames\x12)\n\x06states\x18\x04 \x03(\x0b\x32\x19.viewscale.v1.StateSample\x12\r\n\x05views\x18\x05 \x03(\t\x12\x35\n\x05gamma\x18\x06 \x03(\x0b\x32&.viewscale.v1.ActionRequest.GammaEntry\x12\x11\n\x04seed\x18\x07 \x01(\x04H\x00\x88\x01\x01\x12\x15\n\runconditional\x18\x08 \x01(\x08\x1a,\n\nGammaEntry\x12\x0b\n\x03key\x18\x01 \x01(\t\x12\r\n\x05value\x18\x02 \x01(\x01:\x02\x38\x01\x42\x07\n\x05_seed\"\x9d\x01\n\x06Timing\x12\x11\n\tdecode_ms\x18\x01 \x01(\x01\x12\x11\n\tencode_ms\x18\x02 \x01(\x01\x12\x13\n\x0bstep_p50_ms\x18\x03 \x01(\x01\x12\x13\n\x0bstep_max_ms\x18\x04 \x01(\x01\x12\x10\n\x08total_ms\x18\x05 \x01(\x01\x12\x19\n\x11server_receive_ns\x18\x06 \x01(\x04\x12\x16\n\x0eserver_send_ns\x18\x07 \x01(\x04\"\x89\x02\n\x0b\x41\x63tionReply\x12\x0b\n\x03seq\x18\x01 \x01(\x04\x12(\n\x07\x61\x63tions\x18\x02 \x03(\x0b\x32\x17.viewscale.v1.EefAction\x12\x13\n\x0bstart_index\x18\x03 \x01(\r\x12\x14\n\x0cobs_stamp_ns\x18\x04 \x01(\x04\x12\x12\n\nviews_used\x18\x05 \x03(\t\x12\x10\n\x08\x64\x65graded\x18\x06 \x01(\x08\x12\x18\n\x10\x64\x65graded_reasons\x18\x07 \x03(\t\x12$\n\x06timing\x18\x08 \x01(\x0b\x32\x14.viewscale.v1.Timing\x12\x19\n\x11\x63heckpoint_sha256\x18\t \x01(\t\x12\x17\n\x0fserver_instance\x18\n \x01(\t\">\n\x0cResetRequest\x12\x12\n\nsession_id\x18\x01 \x01(\t\x12\x11\n\x04seed\x18\x02 \x01(\x04H\x00\x88\x01\x01\x42\x07\n\x05_seed\"\x1d\n\nResetReply\x12\x0f\n\x07\x65xisted\x18\x01 \x01(\x08\"\xd5\x01\n\x12\x44\x65noiseObservation\x12\x19\n\x11\x63heckpoint_sha256\x18\x01 \x01(\t\x12\x0c\n\x04view\x18\x02 \x01(\t\x12$\n\x06\x66rames\x18\x03 \x01(\x0b\x32\x14.viewscale.v1.Tensor\x12#\n\x05state\x18\x04 \x01(\x0b\x32\x14.viewscale.v1.Tensor\x12\x15\n\runconditional\x18\x05 \x01(\x08\x12\r\n\x05group\x18\x06 \x01(\t\x12\x12\n\ngroup_size\x18\x07 \x01(\r\x12\x11\n\tprecision\x18\x08 \x01(\t\"9\n\x0b\x44\x65noiseStep\x12\t\n\x01k\x18\x01 \x01(\r\x12\x1f\n\x01x\x18\x02 \x01(\x0b\x32\x14.viewscale.v1.Tensor\"{\n\x0e\x44\x65noiseRequest\x12\x37\n\x0bobservation\x18\x01 \x01(\x0b\x32 .viewscale.v1.DenoiseObservationH\x00\x12)\n\x04step\x18\x02 \x01(\x0b\x32\x19.viewscale.v1.DenoiseStepH\x00\x42\x05\n\x03msg\"o\n\x0c\x44\x65noiseReply\x12!\n\x03\x65ps\x18\x01 \x01(\x0b\x32\x14.viewscale.v1.Tensor\x12(\n\neps_uncond\x18\x02 \x01(\x0b\x32\x14.viewscale.v1.Tensor\x12\x12\n\ncompute_ms\x18\x03 \x01(\x01\"\x13\n\x11WorkerInfoRequest\"\x82\x02\n\nWorkerInfo\x12\x19\n\x11\x63heckpoint_sha256\x18\x01 \x01(\t\x12\x10\n\x08model_id\x18\x02 \x01(\t\x12\x0e\n\x06\x64\x65vice\x18\x03 \x01(\t\x12\x0f\n\x07threads\x18\x04 \x01(\r\x12\x11\n\tmax_batch\x18\x05 \x01(\r\x12\x0f\n\x07streams\x18\x06 \x01(\x04\x12\x0e\n\x06passes\x18\x07 \x01(\x04\x12\x15\n\rbatched_items\x18\x08 \x01(\x04\x12\x13\n\x0bmax_streams\x18\t \x01(\r\x12\x0f\n\x07machine\x18\n \x01(\t\x12\r\n\x05\x63ores\x18\x0b \x03(\r\x12\x13\n\x0b\x61\x63\x63\x65lerator\x18\x0c \x01(\t\x12\x11\n\tprecision\x18\r \x01(\t2\xd8\x01\n\x06Policy\x12J\n\rGetPolicyInfo\x12\x1f.viewscale.v1.PolicyInfoRequest\x1a\x18.viewscale.v1.PolicyInfo\x12\x43\n\tGetAction\x12\x1b.viewscale.v1.ActionRequest\x1a\x19.viewscale.v1.ActionReply\x12=\n\x05Reset\x12\x1a.viewscale.v1.ResetRequest\x1a\x18.viewscale.v1.ResetReply2\xa4\x01\n\rDenoiseWorker\x12G\n\x07\x44\x65noise\x12\x1c.viewscale.v1.DenoiseRequest\x1a\x1a.viewscale.v1.DenoiseReply(\x01\x30\x01\x12J\n\rGetWorkerInfo\x12\x1f.viewscale.v1.WorkerInfoRequest\x1a\x18.viewscale.v1.WorkerInfob\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
@@ -40,39 +40,39 @@ if not _descriptor._USE_C_DESCRIPTORS:
   _globals['_CAMERAINFO']._serialized_start=116
   _globals['_CAMERAINFO']._serialized_end=240
   _globals['_POLICYINFO']._serialized_start=243
-  _globals['_POLICYINFO']._serialized_end=630
-  _globals['_FRAME']._serialized_start=632
-  _globals['_FRAME']._serialized_end=718
-  _globals['_CAMERAFRAMES']._serialized_start=720
-  _globals['_CAMERAFRAMES']._serialized_end=785
-  _globals['_STATESAMPLE']._serialized_start=787
-  _globals['_STATESAMPLE']._serialized_end=875
-  _globals['_ACTIONREQUEST']._serialized_start=878
-  _globals['_ACTIONREQUEST']._serialized_end=1181
-  _globals['_ACTIONREQUEST_GAMMAENTRY']._serialized_start=1128
-  _globals['_ACTIONREQUEST_GAMMAENTRY']._serialized_end=1172
-  _globals['_TIMING']._serialized_start=1184
-  _globals['_TIMING']._serialized_end=1341
-  _globals['_ACTIONREPLY']._serialized_start=1344
-  _globals['_ACTIONREPLY']._serialized_end=1609
-  _globals['_RESETREQUEST']._serialized_start=1611
-  _globals['_RESETREQUEST']._serialized_end=1673
-  _globals['_RESETREPLY']._serialized_start=1675
-  _globals['_RESETREPLY']._serialized_end=1704
-  _globals['_DENOISEOBSERVATION']._serialized_start=1707
-  _globals['_DENOISEOBSERVATION']._serialized_end=1901
-  _globals['_DENOISESTEP']._serialized_start=1903
-  _globals['_DENOISESTEP']._serialized_end=1960
-  _globals['_DENOISEREQUEST']._serialized_start=1962
-  _globals['_DENOISEREQUEST']._serialized_end=2085
-  _globals['_DENOISEREPLY']._serialized_start=2087
-  _globals['_DENOISEREPLY']._serialized_end=2198
-  _globals['_WORKERINFOREQUEST']._serialized_start=2200
-  _globals['_WORKERINFOREQUEST']._serialized_end=2219
-  _globals['_WORKERINFO']._serialized_start=2222
-  _globals['_WORKERINFO']._serialized_end=2461
-  _globals['_POLICY']._serialized_start=2464
-  _globals['_POLICY']._serialized_end=2680
-  _globals['_DENOISEWORKER']._serialized_start=2683
-  _globals['_DENOISEWORKER']._serialized_end=2847
+  _globals['_POLICYINFO']._serialized_end=649
+  _globals['_FRAME']._serialized_start=651
+  _globals['_FRAME']._serialized_end=737
+  _globals['_CAMERAFRAMES']._serialized_start=739
+  _globals['_CAMERAFRAMES']._serialized_end=804
+  _globals['_STATESAMPLE']._serialized_start=806
+  _globals['_STATESAMPLE']._serialized_end=894
+  _globals['_ACTIONREQUEST']._serialized_start=897
+  _globals['_ACTIONREQUEST']._serialized_end=1200
+  _globals['_ACTIONREQUEST_GAMMAENTRY']._serialized_start=1147
+  _globals['_ACTIONREQUEST_GAMMAENTRY']._serialized_end=1191
+  _globals['_TIMING']._serialized_start=1203
+  _globals['_TIMING']._serialized_end=1360
+  _globals['_ACTIONREPLY']._serialized_start=1363
+  _globals['_ACTIONREPLY']._serialized_end=1628
+  _globals['_RESETREQUEST']._serialized_start=1630
+  _globals['_RESETREQUEST']._serialized_end=1692
+  _globals['_RESETREPLY']._serialized_start=1694
+  _globals['_RESETREPLY']._serialized_end=1723
+  _globals['_DENOISEOBSERVATION']._serialized_start=1726
+  _globals['_DENOISEOBSERVATION']._serialized_end=1939
+  _globals['_DENOISESTEP']._serialized_start=1941
+  _globals['_DENOISESTEP']._serialized_end=1998
+  _globals['_DENOISEREQUEST']._serialized_start=2000
+  _globals['_DENOISEREQUEST']._serialized_end=2123
+  _globals['_DENOISEREPLY']._serialized_start=2125
+  _globals['_DENOISEREPLY']._serialized_end=2236
+  _globals['_WORKERINFOREQUEST']._serialized_start=2238
+  _globals['_WORKERINFOREQUEST']._serialized_end=2257
+  _globals['_WORKERINFO']._serialized_start=2260
+  _globals['_WORKERINFO']._serialized_end=2518
+  _globals['_POLICY']._serialized_start=2521
+  _globals['_POLICY']._serialized_end=2737
+  _globals['_DENOISEWORKER']._serialized_start=2740
+  _globals['_DENOISEWORKER']._serialized_end=2904
 # @@protoc_insertion_point(module_scope)

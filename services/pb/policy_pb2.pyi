@@ -31,7 +31,7 @@ class CameraInfo(_message.Message):
     def __init__(self, name: _Optional[str] = ..., width: _Optional[int] = ..., height: _Optional[int] = ..., K: _Optional[_Iterable[float]] = ..., R_ext: _Optional[_Iterable[float]] = ..., position: _Optional[_Iterable[float]] = ..., default_gamma: _Optional[float] = ...) -> None: ...
 
 class PolicyInfo(_message.Message):
-    __slots__ = ("proto_version", "model_id", "checkpoint_sha256", "action_space", "state_frame", "obs_horizon", "pred_horizon", "n_action_steps", "control_hz", "image_width", "image_height", "ddim_steps", "cameras", "unconditional", "default_views", "server_instance")
+    __slots__ = ("proto_version", "model_id", "checkpoint_sha256", "action_space", "state_frame", "obs_horizon", "pred_horizon", "n_action_steps", "control_hz", "image_width", "image_height", "ddim_steps", "cameras", "unconditional", "default_views", "server_instance", "precision")
     PROTO_VERSION_FIELD_NUMBER: _ClassVar[int]
     MODEL_ID_FIELD_NUMBER: _ClassVar[int]
     CHECKPOINT_SHA256_FIELD_NUMBER: _ClassVar[int]
@@ -48,6 +48,7 @@ class PolicyInfo(_message.Message):
     UNCONDITIONAL_FIELD_NUMBER: _ClassVar[int]
     DEFAULT_VIEWS_FIELD_NUMBER: _ClassVar[int]
     SERVER_INSTANCE_FIELD_NUMBER: _ClassVar[int]
+    PRECISION_FIELD_NUMBER: _ClassVar[int]
     proto_version: int
     model_id: str
     checkpoint_sha256: str
@@ -64,7 +65,8 @@ class PolicyInfo(_message.Message):
     unconditional: bool
     default_views: _containers.RepeatedScalarFieldContainer[str]
     server_instance: str
-    def __init__(self, proto_version: _Optional[int] = ..., model_id: _Optional[str] = ..., checkpoint_sha256: _Optional[str] = ..., action_space: _Optional[str] = ..., state_frame: _Optional[str] = ..., obs_horizon: _Optional[int] = ..., pred_horizon: _Optional[int] = ..., n_action_steps: _Optional[int] = ..., control_hz: _Optional[float] = ..., image_width: _Optional[int] = ..., image_height: _Optional[int] = ..., ddim_steps: _Optional[int] = ..., cameras: _Optional[_Iterable[_Union[CameraInfo, _Mapping]]] = ..., unconditional: _Optional[bool] = ..., default_views: _Optional[_Iterable[str]] = ..., server_instance: _Optional[str] = ...) -> None: ...
+    precision: str
+    def __init__(self, proto_version: _Optional[int] = ..., model_id: _Optional[str] = ..., checkpoint_sha256: _Optional[str] = ..., action_space: _Optional[str] = ..., state_frame: _Optional[str] = ..., obs_horizon: _Optional[int] = ..., pred_horizon: _Optional[int] = ..., n_action_steps: _Optional[int] = ..., control_hz: _Optional[float] = ..., image_width: _Optional[int] = ..., image_height: _Optional[int] = ..., ddim_steps: _Optional[int] = ..., cameras: _Optional[_Iterable[_Union[CameraInfo, _Mapping]]] = ..., unconditional: _Optional[bool] = ..., default_views: _Optional[_Iterable[str]] = ..., server_instance: _Optional[str] = ..., precision: _Optional[str] = ...) -> None: ...
 
 class Frame(_message.Message):
     __slots__ = ("jpeg", "rgb", "stamp_ns")
@@ -180,7 +182,7 @@ class ResetReply(_message.Message):
     def __init__(self, existed: _Optional[bool] = ...) -> None: ...
 
 class DenoiseObservation(_message.Message):
-    __slots__ = ("checkpoint_sha256", "view", "frames", "state", "unconditional", "group", "group_size")
+    __slots__ = ("checkpoint_sha256", "view", "frames", "state", "unconditional", "group", "group_size", "precision")
     CHECKPOINT_SHA256_FIELD_NUMBER: _ClassVar[int]
     VIEW_FIELD_NUMBER: _ClassVar[int]
     FRAMES_FIELD_NUMBER: _ClassVar[int]
@@ -188,6 +190,7 @@ class DenoiseObservation(_message.Message):
     UNCONDITIONAL_FIELD_NUMBER: _ClassVar[int]
     GROUP_FIELD_NUMBER: _ClassVar[int]
     GROUP_SIZE_FIELD_NUMBER: _ClassVar[int]
+    PRECISION_FIELD_NUMBER: _ClassVar[int]
     checkpoint_sha256: str
     view: str
     frames: _common_pb2.Tensor
@@ -195,7 +198,8 @@ class DenoiseObservation(_message.Message):
     unconditional: bool
     group: str
     group_size: int
-    def __init__(self, checkpoint_sha256: _Optional[str] = ..., view: _Optional[str] = ..., frames: _Optional[_Union[_common_pb2.Tensor, _Mapping]] = ..., state: _Optional[_Union[_common_pb2.Tensor, _Mapping]] = ..., unconditional: _Optional[bool] = ..., group: _Optional[str] = ..., group_size: _Optional[int] = ...) -> None: ...
+    precision: str
+    def __init__(self, checkpoint_sha256: _Optional[str] = ..., view: _Optional[str] = ..., frames: _Optional[_Union[_common_pb2.Tensor, _Mapping]] = ..., state: _Optional[_Union[_common_pb2.Tensor, _Mapping]] = ..., unconditional: _Optional[bool] = ..., group: _Optional[str] = ..., group_size: _Optional[int] = ..., precision: _Optional[str] = ...) -> None: ...
 
 class DenoiseStep(_message.Message):
     __slots__ = ("k", "x")
@@ -228,7 +232,7 @@ class WorkerInfoRequest(_message.Message):
     def __init__(self) -> None: ...
 
 class WorkerInfo(_message.Message):
-    __slots__ = ("checkpoint_sha256", "model_id", "device", "threads", "max_batch", "streams", "passes", "batched_items", "max_streams", "machine", "cores", "accelerator")
+    __slots__ = ("checkpoint_sha256", "model_id", "device", "threads", "max_batch", "streams", "passes", "batched_items", "max_streams", "machine", "cores", "accelerator", "precision")
     CHECKPOINT_SHA256_FIELD_NUMBER: _ClassVar[int]
     MODEL_ID_FIELD_NUMBER: _ClassVar[int]
     DEVICE_FIELD_NUMBER: _ClassVar[int]
@@ -241,6 +245,7 @@ class WorkerInfo(_message.Message):
     MACHINE_FIELD_NUMBER: _ClassVar[int]
     CORES_FIELD_NUMBER: _ClassVar[int]
     ACCELERATOR_FIELD_NUMBER: _ClassVar[int]
+    PRECISION_FIELD_NUMBER: _ClassVar[int]
     checkpoint_sha256: str
     model_id: str
     device: str
@@ -253,4 +258,5 @@ class WorkerInfo(_message.Message):
     machine: str
     cores: _containers.RepeatedScalarFieldContainer[int]
     accelerator: str
-    def __init__(self, checkpoint_sha256: _Optional[str] = ..., model_id: _Optional[str] = ..., device: _Optional[str] = ..., threads: _Optional[int] = ..., max_batch: _Optional[int] = ..., streams: _Optional[int] = ..., passes: _Optional[int] = ..., batched_items: _Optional[int] = ..., max_streams: _Optional[int] = ..., machine: _Optional[str] = ..., cores: _Optional[_Iterable[int]] = ..., accelerator: _Optional[str] = ...) -> None: ...
+    precision: str
+    def __init__(self, checkpoint_sha256: _Optional[str] = ..., model_id: _Optional[str] = ..., device: _Optional[str] = ..., threads: _Optional[int] = ..., max_batch: _Optional[int] = ..., streams: _Optional[int] = ..., passes: _Optional[int] = ..., batched_items: _Optional[int] = ..., max_streams: _Optional[int] = ..., machine: _Optional[str] = ..., cores: _Optional[_Iterable[int]] = ..., accelerator: _Optional[str] = ..., precision: _Optional[str] = ...) -> None: ...

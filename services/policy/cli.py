@@ -18,7 +18,7 @@ import signal
 import sys
 from pathlib import Path
 
-from services.policy.config import PLACEMENTS  # pydantic only, as the CLI's --log-level check
+from services.policy.config import PLACEMENTS, PRECISIONS  # pydantic only, as the CLI's --log-level check
 
 
 def _load(model, args: argparse.Namespace, flags: list[str], section: str):
@@ -75,7 +75,7 @@ def _serve(args: argparse.Namespace) -> int:
     if args.views:
         args.views = [v.strip() for v in args.views.split(",") if v.strip()]
     flags = ["checkpoint", "listen", "views", "workers", "worker", "in_process", "placement", "device", "threads"]
-    flags += ["rig", "task"]
+    flags += ["precision", "rig", "task"]
     cfg = _load(ServerConfig, args, flags, "policy")
     if cfg is None:
         return 2
@@ -108,7 +108,7 @@ def _serve(args: argparse.Namespace) -> int:
 def _worker(args: argparse.Namespace) -> int:
     from services.policy.config import WorkerConfig
 
-    cfg = _load(WorkerConfig, args, ["checkpoint", "listen", "device", "threads"], "worker")
+    cfg = _load(WorkerConfig, args, ["checkpoint", "listen", "device", "threads", "precision"], "worker")
     if cfg is None:
         return 2
     from services.policy.checkpoint import CheckpointError, read_info
@@ -148,6 +148,12 @@ def add_policy_commands(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--device", help="cpu, cuda or cuda:N (default cpu)")
     p.add_argument("--threads", type=int, help="intra-op threads per model (default 1)")
+    p.add_argument(
+        "--precision",
+        choices=PRECISIONS,
+        help="bf16: the model's passes under bfloat16 autocast, in-process and in local workers; "
+        "remote workers must run with the same (default fp32)",
+    )
     p.add_argument("--rig", help="rig preset or YAML with cameras the checkpoint was not trained on")
     p.add_argument("--task", help="with --rig: the task whose framing the rig takes")
     p.add_argument("--log-dir", help="write local workers' logs here")
@@ -171,6 +177,11 @@ def add_policy_commands(subparsers: argparse._SubParsersAction) -> None:
     w.add_argument("--listen", help="host:port (default 127.0.0.1:0)")
     w.add_argument("--device", help="cpu, cuda or cuda:N (default cpu)")
     w.add_argument("--threads", type=int, help="intra-op threads (default 1)")
+    w.add_argument(
+        "--precision",
+        choices=PRECISIONS,
+        help="bf16: passes under bfloat16 autocast, as the server's --precision (default fp32)",
+    )
     w.add_argument("--config", help="YAML with a `worker` section")
     w.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override any setting")
     w.set_defaults(func=_worker)

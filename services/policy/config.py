@@ -12,6 +12,10 @@ from services.core.config import Frozen, LogLevel
 Placement = Literal["auto", "pack", "spread"]
 PLACEMENTS: tuple[str, ...] = get_args(Placement)
 
+# what the model's passes compute in: float32, or bfloat16 autocast (ModelEngine; `--precision`)
+Precision = Literal["fp32", "bf16"]
+PRECISIONS: tuple[str, ...] = get_args(Precision)
+
 
 class TlsConfig(Frozen):
     cert: str | None = None  # PEM certificate chain of this server
@@ -34,6 +38,9 @@ class WorkerConfig(Frozen):
     listen: str = "127.0.0.1:0"  # host:port; port 0 = the OS picks one (printed on the ready line)
     device: str = "cpu"  # cpu, cuda, cuda:N
     threads: int = Field(1, ge=1)  # intra-op threads of the model (1 measured fastest per worker on 2 cores)
+    precision: Precision = (
+        "fp32"  # bf16: the passes under bfloat16 autocast (a GPU's fast path); the server's must match
+    )
     max_batch: int = Field(64, ge=1)  # items at most in one forward pass
     max_streams: int = Field(256, ge=1)  # Denoise streams at once (a thread each); more: RESOURCE_EXHAUSTED
     group_wait_ms: float = Field(50.0, gt=0)  # longest a view waits for its request's other views here
@@ -57,6 +64,9 @@ class ServerConfig(Frozen):
     placement: Placement = "auto"
     device: str = "cpu"  # device of the in-process model and of local workers
     threads: int = Field(1, ge=1)  # intra-op threads of each model
+    # bf16: the model's passes under bfloat16 autocast, in-process and in local workers; workers
+    # that compute otherwise are not admitted (their answers would differ from the server's setting)
+    precision: Precision = "fp32"
     token: str | None = None  # bearer token: clients (and this server to its workers) present it
     tls: TlsConfig = TlsConfig()  # serve over TLS
     request_timeout_s: float = Field(5.0, gt=0)  # deadline of a GetAction whose call carries none

@@ -300,6 +300,10 @@ def may_balance(address: str) -> bool:
     return False
 
 
+class Mismatch(RuntimeError):
+    """A worker that answers but computes otherwise than the server asks (checkpoint, precision)."""
+
+
 class WorkerPool:
     """The workers the server fans out to; a background task re-admits the ones that recover."""
 
@@ -312,6 +316,7 @@ class WorkerPool:
         check_period_s: float = 0.5,
         placement: str = "auto",
         keepalive_s: float = 5.0,
+        precision: str = "fp32",
     ):
         if not addresses:
             raise ValueError("no worker addresses")
@@ -319,6 +324,9 @@ class WorkerPool:
             raise ValueError(f"placement {placement!r}: one of {', '.join(PLACEMENTS)}")
         self.placement = placement
         self.sha256 = sha256
+        self.precision = (
+            precision  # workers must compute as this says (WorkerInfo.precision; each stream's observation asks again)
+        )
         self.check_period_s = check_period_s
         self._metadata = (("authorization", f"Bearer {token}"),) if token else None
         self.workers: list[WorkerHandle] = []
@@ -361,11 +369,15 @@ class WorkerPool:
                 raise RuntimeError(f"health {health_pb2.HealthCheckResponse.ServingStatus.Name(health.status)}")
             info = await w.stub.GetWorkerInfo(policy_pb2.WorkerInfoRequest(), timeout=1.0, metadata=self._metadata)
             if info.checkpoint_sha256 != self.sha256:
-                raise RuntimeError(f"holds checkpoint {info.checkpoint_sha256[:12]}, not {self.sha256[:12]}")
+                raise Mismatch(f"holds checkpoint {info.checkpoint_sha256[:12]}, not {self.sha256[:12]}")
+            if (info.precision or "fp32") != self.precision:
+                raise Mismatch(f"computes in {info.precision or 'fp32'}, the server's setting is {self.precision}")
         except (grpc.aio.AioRpcError, RuntimeError) as exc:
             reason = exc.details() if isinstance(exc, grpc.aio.AioRpcError) else str(exc)
             if w.healthy:
                 log.warning("worker %s left: %s", w.address, reason)
+            elif isinstance(exc, Mismatch) and reason != w.reason:  # set up unlike the server: say so, once
+                log.warning("worker %s not admitted: %s", w.address, reason)
             w.healthy, w.reason = False, reason or "unreachable"
             return
         w.machine, w.cores, w.accelerator = info.machine, frozenset(info.cores), info.accelerator
@@ -631,6 +643,7 @@ class RemoteDenoiser:
                 unconditional=self._unconditional,
                 group=group[v][0],
                 group_size=group[v][1],
+                precision=self.pool.precision,
             )
             if state.shape[-1]:
                 obs.state.CopyFrom(to_tensor(state))
@@ -695,8 +708,10 @@ class PolicyService(policy_pb2_grpc.PolicyServicer):
         default_views: list[str],
         max_sessions: int = 256,
         request_timeout_s: float = DEFAULT_TIMEOUT_S,
+        precision: str = "fp32",
     ):
         self.spec = spec
+        self.precision = precision  # what the model's passes compute in (PolicyInfo), wherever they run
         self.default_views = default_views
         self.max_sessions = max_sessions
         self.request_timeout_s = request_timeout_s
@@ -729,6 +744,7 @@ class PolicyService(policy_pb2_grpc.PolicyServicer):
             unconditional=s.unconditional,
             default_views=self.default_views,
             server_instance=self.instance,
+            precision=self.precision,
         )
         for name in s.camera_order:
             c = s.cameras[name]
@@ -914,6 +930,7 @@ class LocalWorkers:
 
         cmd = [sys.executable, "-m", "services.policy", "worker", "--checkpoint", str(self.cfg.checkpoint)]
         cmd += ["--listen", listen, "--device", self.cfg.device, "--threads", str(self.cfg.threads)]
+        cmd += ["--precision", self.cfg.precision]
         env = child_env()  # the workers die with the server, however it dies
         if self.cfg.token:
             env["VIEWSCALE_TOKEN"] = self.cfg.token  # not on the command line (ps shows it)
@@ -1028,7 +1045,7 @@ async def serve_policy(cfg, stop: asyncio.Event, worker_addresses: list[str], an
 
     spec, noise, _ = load_spec(cfg)
     views = list(cfg.views or spec.train_views)
-    service = PolicyService(spec, noise, views, cfg.max_sessions, cfg.request_timeout_s)
+    service = PolicyService(spec, noise, views, cfg.max_sessions, cfg.request_timeout_s, cfg.precision)
     interceptors = [BearerTokenInterceptor(cfg.token)] if cfg.token else []
     server = grpc.aio.server(
         interceptors=interceptors,
@@ -1048,7 +1065,9 @@ async def serve_policy(cfg, stop: asyncio.Event, worker_addresses: list[str], an
     loop = asyncio.get_running_loop()
     engine = pool = None
     if cfg.in_process or not worker_addresses:
-        engine = await loop.run_in_executor(None, ModelEngine.open, cfg.checkpoint, cfg.device, cfg.threads)
+        engine = await loop.run_in_executor(
+            None, lambda: ModelEngine.open(cfg.checkpoint, cfg.device, cfg.threads, precision=cfg.precision)
+        )
         service.backend = lambda: LocalDenoiser(engine)
         mode = "in-process"
     else:
@@ -1062,6 +1081,7 @@ async def serve_policy(cfg, stop: asyncio.Event, worker_addresses: list[str], an
             cfg.token,
             placement=cfg.placement,
             keepalive_s=cfg.worker_keepalive_s,
+            precision=cfg.precision,
         )
         await pool.start()
         await pool.wait_ready(1, cfg.worker_ready_s)
@@ -1069,7 +1089,15 @@ async def serve_policy(cfg, stop: asyncio.Event, worker_addresses: list[str], an
         ready, n = len(pool.healthy), len(worker_addresses)
         mode = f"{n} workers" if ready == n else f"{ready} of {n} workers ready (the rest are admitted as they answer)"
     await set_serving(health, [POLICY_SERVICE], True)
-    log.info("policy %s on %s: %s, views %s, %s", spec.model_id, address, spec.action_space, ",".join(views), mode)
+    log.info(
+        "policy %s on %s: %s, views %s, precision %s, %s",
+        spec.model_id,
+        address,
+        spec.action_space,
+        ",".join(views),
+        cfg.precision,
+        mode,
+    )
     announce(f"ready policy {address}")
     await stop.wait()
     await set_serving(health, [POLICY_SERVICE], False)

@@ -111,10 +111,15 @@ class _Job:
 class ModelEngine:
     """One checkpoint on one device, computing whatever is queued in one batched pass."""
 
-    def __init__(self, loaded: LoadedPolicy, threads: int = 1, max_batch: int = 64):
+    def __init__(self, loaded: LoadedPolicy, threads: int = 1, max_batch: int = 64, precision: str = "fp32"):
         self.loaded = loaded
         self.policy = loaded.policy
         self.device = next(self.policy.parameters()).device
+        if precision not in ("fp32", "bf16"):
+            raise ValueError(f"precision {precision!r}: fp32 or bf16")
+        if precision == "bf16" and self.device.type == "cuda" and not torch.cuda.is_bf16_supported():
+            raise ValueError(f"precision bf16: {self.device} does not support bfloat16; use precision fp32")
+        self.precision = precision  # "bf16": every pass under bfloat16 autocast; outputs float32 either way
         self.accelerator = accelerator_id(self.device)  # which GPU, for the server's placement
         self.normalizer = loaded.normalizer
         self.sha256 = checkpoint_sha256(loaded.path)
@@ -150,8 +155,13 @@ class ModelEngine:
             raise ValueError(f"timestep {k} is outside 0..{c.noise.num_train_timesteps - 1}")
 
     @classmethod
-    def open(cls, checkpoint: str | Path, device: str = "cpu", threads: int = 1, max_batch: int = 64) -> ModelEngine:
-        return cls(load_policy(checkpoint, device=device), threads, max_batch)
+    def open(
+        cls, checkpoint: str | Path, device: str = "cpu", threads: int = 1, max_batch: int = 64, precision: str = "fp32"
+    ) -> ModelEngine:
+        return cls(load_policy(checkpoint, device=device), threads, max_batch, precision)
+
+    def _autocast(self):
+        return torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.precision == "bf16")
 
     # -- computing in the caller's thread --------------------------------------------------
     def _compute(self, kind: str, items: list[tuple]) -> list[np.ndarray]:
@@ -261,7 +271,8 @@ class ModelEngine:
             np.ascontiguousarray(self.normalizer.normalize_image(frames).transpose(0, 1, 4, 2, 3))
         ).to(self.device)  # (B, To, 3, H, W)
         state = torch.from_numpy(np.stack([it[1] for it in items])).to(self.device)  # (B, To, D)
-        cond = self.policy.encode(obs, state if state.shape[-1] else None)  # (B, Dc)
+        with self._autocast():
+            cond = self.policy.encode(obs, state if state.shape[-1] else None)  # (B, Dc)
         return list(cond.float().cpu().numpy())
 
     @torch.no_grad()
@@ -269,7 +280,8 @@ class ModelEngine:
         cond = torch.from_numpy(np.stack([it[0] for it in items])).to(self.device)  # (B, Dc)
         x = torch.from_numpy(np.stack([it[1] for it in items]).astype(np.float32)).to(self.device)  # (B, Tp, 7)
         k = torch.tensor([it[2] for it in items], dtype=torch.long, device=self.device)  # (B,)
-        eps = self.policy.denoise_step_eps(x, k, cond)  # (B, Tp, 7)
+        with self._autocast():
+            eps = self.policy.denoise_step_eps(x, k, cond)  # (B, Tp, 7)
         return list(eps.float().cpu().numpy())
 
 
@@ -412,6 +424,7 @@ class DenoiseWorkerService(policy_pb2_grpc.DenoiseWorkerServicer):
             machine=self.machine,
             cores=self.cores,
             accelerator=e.accelerator,
+            precision=e.precision,
         )
 
     def Denoise(self, request_iterator, context):
@@ -432,6 +445,12 @@ class DenoiseWorkerService(policy_pb2_grpc.DenoiseWorkerServicer):
                             grpc.StatusCode.FAILED_PRECONDITION,
                             f"worker holds checkpoint {engine.sha256[:12]}, the server "
                             f"{o.checkpoint_sha256[:12] or '(none)'}: start both from the same checkpoint",
+                        )
+                    if (o.precision or "fp32") != engine.precision:
+                        context.abort(
+                            grpc.StatusCode.FAILED_PRECONDITION,
+                            f"worker computes in {engine.precision}, the server asks for {o.precision or 'fp32'}: "
+                            "start both with the same precision",
                         )
                     try:
                         frames = from_tensor(o.frames)
@@ -574,11 +593,18 @@ async def serve_worker(cfg, stop: asyncio.Event, announce=print) -> int:
     loop = asyncio.get_running_loop()
     try:
         engine = await loop.run_in_executor(
-            None, ModelEngine.open, cfg.checkpoint, cfg.device, cfg.threads, cfg.max_batch
+            None, ModelEngine.open, cfg.checkpoint, cfg.device, cfg.threads, cfg.max_batch, cfg.precision
         )
         service.engine = engine
         serving(True)
-        log.info("worker %s serving %s on %s (%d threads)", address, engine.model_id, engine.device, engine.threads)
+        log.info(
+            "worker %s serving %s on %s (%d threads, precision %s)",
+            address,
+            engine.model_id,
+            engine.device,
+            engine.threads,
+            engine.precision,
+        )
         announce(f"ready worker {address}")
         await stop.wait()
         serving(False)

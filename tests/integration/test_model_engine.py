@@ -119,3 +119,23 @@ def _callers_join_a_held_pass(engine, frames, states, cond, x, alone) -> None:
     for i in range(4):
         np.testing.assert_allclose(got[i], alone, rtol=0, atol=1e-5)
     assert set(threads_seen.values()) == {engine.threads}  # each caller computed with the engine's count
+
+
+def test_amp_bf16_computes_under_bfloat16_and_answers_float32_near_the_float32_numbers(engine):
+    bf16 = ModelEngine(engine.loaded, precision="bf16")  # the same weights, passes under bfloat16 autocast
+    try:
+        frames, states = _inputs(engine, 2, seed=3)
+        x = np.random.default_rng(3).standard_normal((16, 7)).astype(np.float32)
+        c32 = engine.compute_encode(list(zip(frames, states)))
+        c16 = bf16.compute_encode(list(zip(frames, states)))
+        e32 = engine.compute_steps([(c, x, 5) for c in c32])
+        e16 = bf16.compute_steps([(c, x, 5) for c in c32])  # the same conditions: the step's own rounding
+        for a, b in [*zip(c32, c16), *zip(e32, e16)]:
+            assert b.dtype == np.float32
+            scale = float(np.abs(a).max())
+            err = float(np.abs(a - b).max())
+            assert 0 < err < 0.05 * scale, (err, scale)  # bfloat16's 8 bits of mantissa: near, never equal
+    finally:
+        bf16.close()
+    with pytest.raises(ValueError, match="precision 'fp16': fp32 or bf16"):
+        ModelEngine(engine.loaded, precision="fp16")

@@ -164,6 +164,51 @@ def test_fan_out_to_workers_gives_the_in_process_actions(checkpoint, observation
             stop(p)
 
 
+def test_amp_bf16_through_a_worker_is_the_in_process_bf16_and_a_worker_computing_otherwise_is_left_out(
+    checkpoint, observations
+):
+    bf16, fp32 = start_worker(checkpoint, "--precision", "bf16"), start_worker(checkpoint)
+    servers = {
+        "in-process bf16": start_server(checkpoint, "--views", "F", "--in-process", "--precision", "bf16"),
+        "fan-out bf16": start_server(checkpoint, "--views", "F", "--precision", "bf16", *worker_flags([bf16, fp32])),
+        "in-process fp32": start_server(checkpoint, "--views", "F", "--in-process"),
+    }
+    try:
+        got = {}
+        for name, (_, addr) in servers.items():
+            with PolicyClient(addr) as client:
+                assert client.info.precision == name.split()[-1]  # what it computes in, told
+                got[name] = [client.get_action(f, s, seed=5 + i).actions for i, (f, s) in enumerate(observations[:3])]
+        np.testing.assert_array_equal(got["fan-out bf16"], got["in-process bf16"])
+        diff = np.abs(np.subtract(got["in-process bf16"], got["in-process fp32"])).max()
+        assert 0 < diff < 0.05 * np.abs(got["in-process fp32"]).max()  # bfloat16's rounding: near, not equal
+        # every view went to the bf16 worker; the float32 one was not admitted, and the log says why
+        assert (worker_info(bf16[1]).streams, worker_info(fp32[1]).streams) == (3, 0)
+        log = servers["fan-out bf16"][0].log_path.read_text()
+        assert f"worker {fp32[1]} not admitted: computes in fp32, the server's setting is bf16" in log
+        # and a stream that asks a worker for another precision is refused, as for another checkpoint
+        with grpc.insecure_channel(fp32[1]) as ch:
+            call = policy_pb2_grpc.DenoiseWorkerStub(ch).Denoise(
+                iter(
+                    [
+                        policy_pb2.DenoiseRequest(
+                            observation=policy_pb2.DenoiseObservation(
+                                checkpoint_sha256=worker_info(fp32[1]).checkpoint_sha256, view="F", precision="bf16"
+                            )
+                        )
+                    ]
+                ),
+                timeout=10,
+            )
+            with pytest.raises(grpc.RpcError) as err:
+                list(call)
+        assert err.value.code() == grpc.StatusCode.FAILED_PRECONDITION
+        assert "worker computes in fp32, the server asks for bf16" in err.value.details()
+    finally:
+        for p, _ in [*servers.values(), bf16, fp32]:
+            stop(p)
+
+
 @pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="needs two CPU cores to pin workers to")
 def test_auto_placement_spreads_views_over_workers_on_cores_of_their_own(checkpoint, observations):
     """Three CPU workers on one machine, pinned (taskset): the first and third to one core, the
