@@ -324,9 +324,8 @@ class WorkerPool:
             raise ValueError(f"placement {placement!r}: one of {', '.join(PLACEMENTS)}")
         self.placement = placement
         self.sha256 = sha256
-        self.precision = (
-            precision  # workers must compute as this says (WorkerInfo.precision; each stream's observation asks again)
-        )
+        # workers must compute as this says (WorkerInfo.precision; each stream's observation asks again)
+        self.precision = precision
         self.check_period_s = check_period_s
         self._metadata = (("authorization", f"Bearer {token}"),) if token else None
         self.workers: list[WorkerHandle] = []
