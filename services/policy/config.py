@@ -38,9 +38,8 @@ class WorkerConfig(Frozen):
     listen: str = "127.0.0.1:0"  # host:port; port 0 = the OS picks one (printed on the ready line)
     device: str = "cpu"  # cpu, cuda, cuda:N
     threads: int = Field(1, ge=1)  # intra-op threads of the model (1 measured fastest per worker on 2 cores)
-    precision: Precision = (
-        "fp32"  # bf16: the passes under bfloat16 autocast (a GPU's fast path); the server's must match
-    )
+    # bf16: the passes under bfloat16 autocast (a GPU's fast path); the server's setting must match
+    precision: Precision = "fp32"
     max_batch: int = Field(64, ge=1)  # items at most in one forward pass
     max_streams: int = Field(256, ge=1)  # Denoise streams at once (a thread each); more: RESOURCE_EXHAUSTED
     group_wait_ms: float = Field(50.0, gt=0)  # longest a view waits for its request's other views here
