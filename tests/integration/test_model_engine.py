@@ -121,7 +121,7 @@ def _callers_join_a_held_pass(engine, frames, states, cond, x, alone) -> None:
     assert set(threads_seen.values()) == {engine.threads}  # each caller computed with the engine's count
 
 
-def test_amp_bf16_computes_under_bfloat16_and_answers_float32_near_the_float32_numbers(engine):
+def test_precision_bf16_computes_under_bfloat16_and_answers_float32_near_the_float32_numbers(engine):
     bf16 = ModelEngine(engine.loaded, precision="bf16")  # the same weights, passes under bfloat16 autocast
     try:
         frames, states = _inputs(engine, 2, seed=3)

@@ -164,7 +164,7 @@ def test_fan_out_to_workers_gives_the_in_process_actions(checkpoint, observation
             stop(p)
 
 
-def test_amp_bf16_through_a_worker_is_the_in_process_bf16_and_a_worker_computing_otherwise_is_left_out(
+def test_precision_bf16_through_a_worker_is_the_in_process_bf16_and_a_worker_computing_otherwise_is_left_out(
     checkpoint, observations
 ):
     bf16, fp32 = start_worker(checkpoint, "--precision", "bf16"), start_worker(checkpoint)
@@ -187,21 +187,13 @@ def test_amp_bf16_through_a_worker_is_the_in_process_bf16_and_a_worker_computing
         log = servers["fan-out bf16"][0].log_path.read_text()
         assert f"worker {fp32[1]} not admitted: computes in fp32, the server's setting is bf16" in log
         # and a stream that asks a worker for another precision is refused, as for another checkpoint
+        sha = worker_info(fp32[1]).checkpoint_sha256
+        ask = policy_pb2.DenoiseRequest(
+            observation=policy_pb2.DenoiseObservation(checkpoint_sha256=sha, precision="bf16")
+        )
         with grpc.insecure_channel(fp32[1]) as ch:
-            call = policy_pb2_grpc.DenoiseWorkerStub(ch).Denoise(
-                iter(
-                    [
-                        policy_pb2.DenoiseRequest(
-                            observation=policy_pb2.DenoiseObservation(
-                                checkpoint_sha256=worker_info(fp32[1]).checkpoint_sha256, view="F", precision="bf16"
-                            )
-                        )
-                    ]
-                ),
-                timeout=10,
-            )
             with pytest.raises(grpc.RpcError) as err:
-                list(call)
+                list(policy_pb2_grpc.DenoiseWorkerStub(ch).Denoise(iter([ask]), timeout=10))
         assert err.value.code() == grpc.StatusCode.FAILED_PRECONDITION
         assert "worker computes in fp32, the server asks for bf16" in err.value.details()
     finally:
