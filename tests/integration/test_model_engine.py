@@ -121,8 +121,8 @@ def _callers_join_a_held_pass(engine, frames, states, cond, x, alone) -> None:
     assert set(threads_seen.values()) == {engine.threads}  # each caller computed with the engine's count
 
 
-def test_precision_bf16_computes_under_bfloat16_and_answers_float32_near_the_float32_numbers(engine):
-    bf16 = ModelEngine(engine.loaded, precision="bf16")  # the same weights, passes under bfloat16 autocast
+def test_precision_bf16_computes_under_bfloat16_and_answers_float32_near_the_float32_numbers(engine, tiny_checkpoint):
+    bf16 = ModelEngine.open(tiny_checkpoint, precision="bf16")  # a policy of its own: it casts its weights
     try:
         frames, states = _inputs(engine, 2, seed=3)
         x = np.random.default_rng(3).standard_normal((16, 7)).astype(np.float32)
@@ -135,6 +135,8 @@ def test_precision_bf16_computes_under_bfloat16_and_answers_float32_near_the_flo
             scale = float(np.abs(a).max())
             err = float(np.abs(a - b).max())
             assert 0 < err < 0.05 * scale, (err, scale)  # bfloat16's 8 bits of mantissa: near, never equal
+        assert all(p.dtype == torch.float32 for p in engine.policy.parameters())  # the fp32 engine's: untouched
+        assert any(p.dtype == torch.bfloat16 for p in bf16.policy.parameters())
     finally:
         bf16.close()
     with pytest.raises(ValueError, match="precision 'fp16': fp32 or bf16"):
