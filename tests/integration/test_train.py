@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import torch
 from safetensors.torch import load_file
+from tiny_models import TINY_VIT
 
 from services.cli import main as viewscale
 from services.core.config import ConfigError
@@ -309,14 +310,7 @@ def test_dinov3_lora_policy_trains_and_reloads_without_the_pretrained_file(sim_d
     from safetensors.torch import save_file
     from transformers import DINOv3ViTConfig, DINOv3ViTModel
 
-    vit_cfg = dict(
-        hidden_size=32,
-        intermediate_size=64,
-        num_attention_heads=2,
-        num_hidden_layers=2,
-        num_register_tokens=2,
-        patch_size=8,
-    )
+    vit_cfg = dict(TINY_VIT)
     torch.manual_seed(0)
     weights = tmp_path / "dinov3-tiny.safetensors"
     save_file(

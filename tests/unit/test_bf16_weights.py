@@ -8,6 +8,7 @@ import copy
 
 import pytest
 import torch
+from tiny_models import TINY_VIT
 from torch import nn
 
 from services.policy.model.encoder import EncoderConfig
@@ -16,15 +17,6 @@ from services.policy.model.policy import DiffusionPolicy, ModelConfig
 from services.policy.worker import KEEP_PACKAGES, MATMUL_LAYERS, cast_matmul_weights
 
 torch.set_num_threads(1)
-
-TINY_VIT = dict(
-    hidden_size=32,
-    intermediate_size=64,
-    num_attention_heads=2,
-    num_hidden_layers=2,
-    num_register_tokens=2,
-    patch_size=8,
-)
 ENCODERS = {
     "resnet": EncoderConfig(width=8, stage_strides=(1, 2, 1, 1), num_keypoints=4, feature_dim=8),
     "dinov3+lora": EncoderConfig(kind="dinov3", vit_config=TINY_VIT, lora_rank=4, lora_alpha=8, feature_dim=16),

@@ -7,6 +7,7 @@ from pathlib import Path
 import pytest
 import torch
 from safetensors.torch import save_file
+from tiny_models import TINY_VIT
 from torch import nn
 
 from services.policy.model.encoder import (
@@ -18,15 +19,6 @@ from services.policy.model.encoder import (
 )
 
 torch.set_num_threads(1)
-
-TINY_VIT = dict(
-    hidden_size=32,
-    intermediate_size=64,
-    num_attention_heads=2,
-    num_hidden_layers=2,
-    num_register_tokens=2,
-    patch_size=8,
-)
 
 
 def test_centre_crop_is_the_middle_window_and_random_crop_varies():
