@@ -48,11 +48,12 @@ import torch
 from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 from grpc_health.v1.health import aio as health_aio
 from grpc_reflection.v1alpha import reflection
-from torch import nn
 
 from services.core.tensors import from_tensor, to_tensor
 from services.pb import policy_pb2, policy_pb2_grpc
 from services.policy.checkpoint import LoadedPolicy, checkpoint_sha256, load_policy, model_id
+from services.policy.config import PRECISIONS
+from services.policy.model.fastpath import cast_matmul_weights
 from services.policy.transport import keepalive_server_options, message_size_options
 
 log = logging.getLogger(__name__)
@@ -109,33 +110,6 @@ class _Job:
     single: bool = False
 
 
-# The layers whose weights autocast hands to a bfloat16 matrix multiply or convolution: nothing
-# else reads them. (GemmConv1d, the CPU's Conv1d, is an nn.Conv1d.)
-MATMUL_LAYERS = (nn.Linear, nn.Conv1d, nn.Conv2d, nn.Conv3d, nn.ConvTranspose1d, nn.ConvTranspose2d)
-# Library models whose code reads their weights' dtype (to cast inputs, LoRA's adapters): left as
-# they are, autocast casts their weights at each pass as before. Measured: casting inside the
-# DINOv3 ViT with LoRA changed the encoder's bf16 output.
-KEEP_PACKAGES = ("transformers", "peft")
-
-
-def cast_matmul_weights(model: nn.Module, dtype: torch.dtype) -> int:
-    """Store the weights and biases of ``model``'s MATMUL_LAYERS in ``dtype``, in place (not inside
-    KEEP_PACKAGES' modules); returns how many tensors.
-
-    Under autocast to ``dtype`` the outputs are unchanged to the bit (tests/unit/test_bf16_weights.py):
-    autocast rounds these same tensors to ``dtype`` before each such op. It does so again at every
-    pass, which on a CPU was most of a bf16 step (paper preset, one view: 240 ms against 40 ms with
-    the weights cast once)."""
-    if type(model).__module__.split(".")[0] in KEEP_PACKAGES:
-        return 0
-    n = 0
-    if isinstance(model, MATMUL_LAYERS):
-        for p in model.parameters(recurse=False):
-            p.data = p.data.to(dtype)
-            n += 1
-    return n + sum(cast_matmul_weights(child, dtype) for child in model.children())
-
-
 class ModelEngine:
     """One checkpoint on one device, computing whatever is queued in one batched pass.
 
@@ -146,8 +120,8 @@ class ModelEngine:
         self.loaded = loaded
         self.policy = loaded.policy
         self.device = next(self.policy.parameters()).device
-        if precision not in ("fp32", "bf16"):
-            raise ValueError(f"precision {precision!r}: fp32 or bf16")
+        if precision not in PRECISIONS:
+            raise ValueError(f"precision {precision!r}: {' or '.join(PRECISIONS)}")
         if precision == "bf16" and self.device.type == "cuda" and not torch.cuda.is_bf16_supported():
             raise ValueError(f"precision bf16: {self.device} does not support bfloat16; use precision fp32")
         self.precision = precision  # "bf16": every pass under bfloat16 autocast; outputs float32 either way

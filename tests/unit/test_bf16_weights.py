@@ -12,9 +12,8 @@ from tiny_models import TINY_VIT
 from torch import nn
 
 from services.policy.model.encoder import EncoderConfig
-from services.policy.model.fastpath import use_gemm_conv1d
+from services.policy.model.fastpath import KEEP_PACKAGES, MATMUL_LAYERS, cast_matmul_weights, use_gemm_conv1d
 from services.policy.model.policy import DiffusionPolicy, ModelConfig
-from services.policy.worker import KEEP_PACKAGES, MATMUL_LAYERS, cast_matmul_weights
 
 torch.set_num_threads(1)
 ENCODERS = {

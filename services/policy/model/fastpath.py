@@ -9,6 +9,10 @@ Measured on the 2-core development machine (``bench/train_step.py``, rows in ben
   a dozen elementwise ops per tensor.
 - ``ema_update``: the weight average as one ``torch._foreach_lerp_`` over all tensors.
 
+And for serving in bfloat16 (any device): ``cast_matmul_weights`` stores the linear and
+convolution weights in bfloat16 once, where autocast would round them again at every pass
+(``bench/serving.py --precision``): the same outputs under autocast, to the bit.
+
 Each one computes what the plain module computes, up to float32 rounding (the tests compare
 outputs and gradients on random inputs). State dict keys and shapes are unchanged, so a checkpoint
 trained with or without them loads either way.
@@ -123,3 +127,30 @@ def ema_update(averaged: list[torch.Tensor], current: list[torch.Tensor], decay:
     """averaged <- decay * averaged + (1 - decay) * current, for every pair at once."""
     if averaged:
         torch._foreach_lerp_(averaged, current, 1.0 - decay)
+
+
+# The layers whose weights autocast hands to a bfloat16 matrix multiply or convolution: nothing
+# else reads them. (GemmConv1d, the CPU's Conv1d, is an nn.Conv1d.)
+MATMUL_LAYERS = (nn.Linear, nn.Conv1d, nn.Conv2d, nn.Conv3d, nn.ConvTranspose1d, nn.ConvTranspose2d)
+# Library models whose code reads their weights' dtype (to cast inputs, LoRA's adapters): left as
+# they are, autocast casts their weights at each pass as before. Measured: casting inside the
+# DINOv3 ViT with LoRA changed the encoder's bf16 output.
+KEEP_PACKAGES = ("transformers", "peft")
+
+
+def cast_matmul_weights(model: nn.Module, dtype: torch.dtype) -> int:
+    """Store the weights and biases of ``model``'s MATMUL_LAYERS in ``dtype``, in place (not inside
+    KEEP_PACKAGES' modules); returns how many tensors.
+
+    Under autocast to ``dtype`` the outputs are unchanged to the bit (tests/unit/test_bf16_weights.py):
+    autocast rounds these same tensors to ``dtype`` before each such op. It does so again at every
+    pass, which on a CPU was most of a bf16 request (paper preset, one view: 2902 ms per request,
+    and 467 ms with the weights cast once; bench/serving.py rows of 2026-12-04 00:15 and 00:24)."""
+    if type(model).__module__.split(".")[0] in KEEP_PACKAGES:
+        return 0
+    n = 0
+    if isinstance(model, MATMUL_LAYERS):
+        for p in model.parameters(recurse=False):
+            p.data = p.data.to(dtype)
+            n += 1
+    return n + sum(cast_matmul_weights(child, dtype) for child in model.children())
