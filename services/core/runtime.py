@@ -37,6 +37,17 @@ def stop_on_signals(stop: threading.Event) -> None:
     signal.signal(signal.SIGHUP, handler)
 
 
+def wait_for_stop(stop: threading.Event, poll_s: float = 0.2) -> None:
+    """Block the main thread until ``stop`` is set, waking every ``poll_s``.
+
+    Never ``stop.wait()`` with no timeout in a main thread: the kernel gives a process signal (a
+    kill, or the parent-death SIGTERM of ``die_with_parent``) to any thread that does not block
+    it, often one of zenoh's, and Python runs the handler only when the main thread next runs
+    bytecode. A main thread asleep in an untimed wait never does, and the service never stops."""
+    while not stop.wait(poll_s):
+        pass
+
+
 def host_description(gpu: str | None = None) -> str:
     """``node (CPU model, N cores[, gpu])``: where something ran. The same seed trained on another
     CPU model gives other weights (its float kernels round differently), so results record it."""

@@ -33,7 +33,7 @@ from google.protobuf.message import Message
 
 from services.core.bus import Bus, Received
 from services.core.clock import now_ns
-from services.core.runtime import serve
+from services.core.runtime import serve, wait_for_stop
 from services.core.topics import (
     APPLIED_ACTION,
     EPISODE,
@@ -142,7 +142,7 @@ class Recorder:
         return sorted(self._calibration)
 
     def run(self, stop: threading.Event) -> None:
-        stop.wait()
+        wait_for_stop(stop)
 
     def close(self) -> None:
         """Write everything queued and close the open episode (flagged interrupted if not stopped)."""

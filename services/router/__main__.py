@@ -20,7 +20,7 @@ from pathlib import Path
 from services.core.bus import read_users, router
 from services.core.cli_args import log_level_arg
 from services.core.config import ConfigError
-from services.core.runtime import announce_ready, configure_logging, die_with_parent, stop_on_signals
+from services.core.runtime import announce_ready, configure_logging, die_with_parent, stop_on_signals, wait_for_stop
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -58,7 +58,7 @@ def main(argv: list[str] | None = None) -> int:
             log.info("authentication on: %d users (%s)", len(users), ", ".join(users))
             log.info("access control: %s", args.acl or "none (every authenticated user may do anything)")
         announce_ready("router", ",".join(listen))
-        stop.wait()
+        wait_for_stop(stop)
     log.info("stopped")
     return 0
 

@@ -28,6 +28,7 @@ from typing import Any
 
 from services.core.bus import Bus
 from services.core.config import ConfigError, deep_merge, parse_overrides, read_yaml
+from services.core.runtime import wait_for_stop
 from services.core.topics import TRAIN_PROGRESS, TRAIN_REQUEST
 from services.pb import trainer_pb2
 from services.pb.common_pb2 import Header
@@ -89,7 +90,7 @@ class TrainerService:
             t.join(timeout=60)
 
     def run(self, stop: threading.Event) -> None:
-        stop.wait()
+        wait_for_stop(stop)
 
     # -- requests -------------------------------------------------------------------------------
     def _status(self, reply: trainer_pb2.TrainReply) -> trainer_pb2.TrainReply:

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from signals import signal_another_thread
 
 from services.core import topics
 from services.core.bus import Bus, BusConfig, free_tcp_port, router
@@ -186,3 +187,18 @@ def test_bad_settings_exit_with_a_clear_error(tmp_path):
         timeout=60,
     )
     assert run.returncode == 2 and "invalid RecorderConfig" in run.stderr and "queue_size" in run.stderr
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="tgkill: Linux only")
+def test_sigterm_taken_by_another_thread_still_closes_the_file(session):
+    # Python runs a signal handler only when the main thread runs bytecode: a main thread asleep in
+    # an untimed wait never did, so `viewscale collect` killed -9 could leave the recorder running.
+    bus, start = session
+    proc = start()
+    assert control(bus, EPISODE_COMMAND_START, episode_id="other", task="lift", seed=1, rig="front", control_hz=50).ok
+    publish(bus, 5)
+    wait_status(bus, 5, {"F": 5, "L": 5})
+    signal_another_thread(proc.proc.pid, signal.SIGTERM)
+    assert proc.proc.wait(timeout=30) == 0
+    ep = read_episode(Path(proc.log).parent / "episodes" / "other.mcap")
+    assert ep.metadata["ticks"] == 5 and any(f.startswith("interrupted") for f in ep.flags)
