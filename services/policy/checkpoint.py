@@ -191,13 +191,23 @@ def read_info(path: str | Path) -> dict[str, Any]:
     return info
 
 
-def read_train_state(path: str | Path) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
+def read_weights(file: str | Path) -> dict[str, torch.Tensor]:
+    """The tensors of a checkpoint's safetensors file; CheckpointError naming it when it cannot be
+    read (truncated by a copy, overwritten, missing)."""
+    from safetensors import SafetensorError
     from safetensors.torch import load_file
 
+    try:
+        return load_file(str(file))
+    except (SafetensorError, OSError) as exc:
+        raise CheckpointError(f"{file} cannot be read ({exc}): copy the checkpoint again or use another") from None
+
+
+def read_train_state(path: str | Path) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
     path = Path(path)
     if not (path / STATE_FILE).is_file():
         raise CheckpointError(f"{path} has no training state (was it exported for serving only?)")
-    return load_file(str(path / STATE_FILE)), json.loads((path / STATE_JSON).read_text())
+    return read_weights(path / STATE_FILE), json.loads((path / STATE_JSON).read_text())
 
 
 def config_diff(a: ModelConfig, b: ModelConfig) -> list[str]:
@@ -230,6 +240,36 @@ def load_state_checked(module: torch.nn.Module, state: dict[str, torch.Tensor], 
     module.load_state_dict(state, strict=True)
 
 
+def inference_device(spec: str | torch.device, precision: str = "fp32") -> torch.device:
+    """The device ``spec`` names (cpu, cuda, cuda:N, mps), checked to exist on this machine and, for
+    ``precision`` bf16 on CUDA, to compute in bfloat16. ValueError naming what is wrong otherwise:
+    a server or worker says so in one line before it listens, not in a traceback while loading."""
+    import torch
+
+    try:
+        device = torch.device(spec)
+    except (RuntimeError, TypeError):
+        raise ValueError(f"device {str(spec)!r}: not a device name (cpu, cuda or cuda:N)") from None
+    if device.type == "cuda":
+        if not torch.cuda.is_available():
+            raise ValueError(f"device {spec}: no CUDA device is visible on this machine (use device cpu)")
+        n = torch.cuda.device_count()
+        if device.index is not None and device.index >= n:
+            have = f"{n} CUDA device{'s' * (n != 1)} (cuda:0 to cuda:{n - 1})"
+            raise ValueError(f"device {spec}: this machine has {have}")
+        if precision == "bf16":  # (asking creates a CUDA context on that device: only when it matters)
+            with torch.cuda.device(device):
+                if not torch.cuda.is_bf16_supported():
+                    name = torch.cuda.get_device_name(device)
+                    raise ValueError(f"precision bf16: {spec} ({name}) does not support bfloat16; use fp32")
+    elif device.type == "mps":
+        if not torch.backends.mps.is_available():
+            raise ValueError(f"device {spec}: MPS is not available on this machine (use device cpu)")
+    elif device.type != "cpu":
+        raise ValueError(f"device {spec}: a policy runs on cpu, cuda or mps")
+    return device
+
+
 def load_policy(
     path: str | Path, device: str | torch.device = "cpu", expect: ModelConfig | None = None, fast_paths: bool = True
 ) -> LoadedPolicy:
@@ -239,12 +279,10 @@ def load_policy(
     ``fast_paths``: compute the U-Net's Conv1d layers as GEMMs where that was measured faster
     (the CPU; ``services.policy.model.fastpath``); the same maths either way.
     """
-    import torch
-    from safetensors.torch import load_file
-
     from services.policy.model.fastpath import gemm_conv1d_pays_off, use_gemm_conv1d
     from services.policy.model.policy import DiffusionPolicy, ModelConfig
 
+    device = inference_device(device)  # before any weight is read
     path = resolve_checkpoint(path)
     info = read_info(path)
     cfg = ModelConfig.model_validate(info["model"])
@@ -253,8 +291,8 @@ def load_policy(
         if diff:
             raise CheckpointError(f"checkpoint {path} has a different model config: {', '.join(diff)}")
     policy = DiffusionPolicy(cfg, load_pretrained=False)
-    load_state_checked(policy, load_file(str(path / MODEL_FILE)), f"checkpoint {path}")
+    load_state_checked(policy, read_weights(path / MODEL_FILE), f"checkpoint {path}")
     policy = policy.to(device).eval()
-    if fast_paths and gemm_conv1d_pays_off(torch.device(device)):
+    if fast_paths and gemm_conv1d_pays_off(device):
         use_gemm_conv1d(policy)
     return LoadedPolicy(policy, info, path)

@@ -79,11 +79,16 @@ def _serve(args: argparse.Namespace) -> int:
     cfg = _load(ServerConfig, args, flags, "policy")
     if cfg is None:
         return 2
-    from services.policy.checkpoint import CheckpointError
+    from services.policy.checkpoint import CheckpointError, inference_device
     from services.policy.server import LocalWorkers, load_spec, serve_policy
 
     try:
-        load_spec(cfg)  # a bad checkpoint or view is one line, before any process starts
+        load_spec(cfg)  # a bad checkpoint, view or device is one line, before any process starts
+        here = cfg.in_process or not (cfg.workers or cfg.worker)  # this process computes
+        if here or cfg.workers:  # (the device is that of the in-process model and of local workers)
+            # bf16 support only where this process computes: asking creates a CUDA context (local
+            # workers ask for themselves, and say so in their logs)
+            inference_device(cfg.device, cfg.precision if here else "fp32")
     except (CheckpointError, ValueError, OSError) as exc:
         return _error(exc)
     log_dir = Path(args.log_dir) if args.log_dir else None
@@ -101,7 +106,7 @@ def _serve(args: argparse.Namespace) -> int:
                     supervisor.cancel()
 
             return _run(serve)
-    except (RuntimeError, TimeoutError) as exc:
+    except (RuntimeError, TimeoutError, CheckpointError) as exc:  # (CheckpointError: weights unreadable)
         return _error(exc, 1)
 
 
@@ -111,14 +116,18 @@ def _worker(args: argparse.Namespace) -> int:
     cfg = _load(WorkerConfig, args, ["checkpoint", "listen", "device", "threads", "precision"], "worker")
     if cfg is None:
         return 2
-    from services.policy.checkpoint import CheckpointError, read_info
+    from services.policy.checkpoint import CheckpointError, inference_device, read_info
     from services.policy.worker import serve_worker
 
     try:
         read_info(cfg.checkpoint)
+        inference_device(cfg.device, cfg.precision)  # before it listens: a one-line error, not a traceback
     except (CheckpointError, ValueError, OSError) as exc:
         return _error(exc)
-    return _run(lambda stop: serve_worker(cfg, stop, _announce))
+    try:
+        return _run(lambda stop: serve_worker(cfg, stop, _announce))
+    except CheckpointError as exc:  # the weights, read once it listens
+        return _error(exc, 1)
 
 
 def add_policy_commands(subparsers: argparse._SubParsersAction) -> None:

@@ -917,11 +917,29 @@ class LocalWorkers:
     restarts one that exits (a crash, the OOM killer, kill -9) on the same address."""
 
     def __init__(self, cfg, n: int, log_dir: Path | None = None):
+        import tempfile
+
         self.cfg = cfg
         self.n = n
-        self.log_dir = log_dir
+        # the workers' stderr (worker-N.log): in log_dir, or in a folder of our own removed at the
+        # end; either way a worker that exits is reported with its last line
+        self._own_logs = tempfile.TemporaryDirectory(prefix="viewscale-workers-") if log_dir is None and n else None
+        self.log_dir = Path(self._own_logs.name) if self._own_logs else log_dir
         self.procs: list[Any] = []
         self.addresses: list[str] = []
+
+    def last_words(self, i: int) -> str:
+        """The last line worker ``i`` wrote to its stderr ('' if none)."""
+        if self.log_dir is None:
+            return ""
+        try:
+            with open(self.log_dir / f"worker-{i}.log", "rb") as f:
+                f.seek(0, 2)
+                f.seek(max(0, f.tell() - 4096))
+                lines = [ln.strip() for ln in f.read().decode(errors="replace").splitlines() if ln.strip()]
+        except OSError:
+            return ""
+        return lines[-1] if lines else ""
 
     def _spawn(self, i: int, listen: str, stdout: int):
         import subprocess
@@ -952,7 +970,10 @@ class LocalWorkers:
                         self.addresses.append(line.split()[2])
                         break
                 else:
-                    raise RuntimeError(f"worker {i} exited with code {p.wait()} before listening")
+                    said = self.last_words(i)
+                    raise RuntimeError(
+                        f"worker {i} exited with code {p.wait()} before listening" + (f": {said}" if said else "")
+                    )
         except BaseException:
             self.__exit__()
             raise
@@ -979,10 +1000,11 @@ class LocalWorkers:
                     delay[i] = min(2 * delay[i], 60.0) if now - started[i] < quick_exit_s else 1.0
                     due[i] = now + delay[i]
                     log.warning(
-                        "local worker %d (%s) exited with code %s: restarting it in %.0f s",
+                        "local worker %d (%s) exited with code %s%s: restarting it in %.0f s",
                         i,
                         self.addresses[i],
                         p.returncode,
+                        f" ({said})" if (said := self.last_words(i)) else "",
                         delay[i],
                     )
                     if p.stdout:
@@ -1006,6 +1028,8 @@ class LocalWorkers:
                 p.wait()
             if p.stdout:
                 p.stdout.close()
+        if self._own_logs is not None:
+            self._own_logs.cleanup()
 
 
 def rig_cameras(rig: str, task: str | None, width: int, height: int) -> dict[str, CameraSpec]:
@@ -1063,46 +1087,50 @@ async def serve_policy(cfg, stop: asyncio.Event, worker_addresses: list[str], an
     announce(f"listening policy {address}")
     loop = asyncio.get_running_loop()
     engine = pool = None
-    if cfg.in_process or not worker_addresses:
-        engine = await loop.run_in_executor(
-            None, lambda: ModelEngine.open(cfg.checkpoint, cfg.device, cfg.threads, precision=cfg.precision)
+    try:  # whatever fails while starting, the server is stopped before the loop closes
+        if cfg.in_process or not worker_addresses:
+            engine = await loop.run_in_executor(
+                None, lambda: ModelEngine.open(cfg.checkpoint, cfg.device, cfg.threads, precision=cfg.precision)
+            )
+            service.backend = lambda: LocalDenoiser(engine)
+            mode = "in-process"
+        else:
+            creds_out = None
+            if cfg.tls.ca:
+                creds_out = grpc.ssl_channel_credentials(root_certificates=Path(cfg.tls.ca).read_bytes())
+            pool = WorkerPool(
+                worker_addresses,
+                spec.sha256,
+                creds_out,
+                cfg.token,
+                placement=cfg.placement,
+                keepalive_s=cfg.worker_keepalive_s,
+                precision=cfg.precision,
+            )
+            await pool.start()
+            await pool.wait_ready(1, cfg.worker_ready_s)
+            service.backend = lambda: RemoteDenoiser(pool, spec)
+            ready, n = len(pool.healthy), len(worker_addresses)
+            mode = f"{n} workers"
+            if ready < n:
+                mode = f"{ready} of {n} workers ready (the rest are admitted as they answer)"
+        await set_serving(health, [POLICY_SERVICE], True)
+        log.info(
+            "policy %s on %s: %s, views %s, precision %s, %s",
+            spec.model_id,
+            address,
+            spec.action_space,
+            ",".join(views),
+            cfg.precision,
+            mode,
         )
-        service.backend = lambda: LocalDenoiser(engine)
-        mode = "in-process"
-    else:
-        creds_out = None
-        if cfg.tls.ca:
-            creds_out = grpc.ssl_channel_credentials(root_certificates=Path(cfg.tls.ca).read_bytes())
-        pool = WorkerPool(
-            worker_addresses,
-            spec.sha256,
-            creds_out,
-            cfg.token,
-            placement=cfg.placement,
-            keepalive_s=cfg.worker_keepalive_s,
-            precision=cfg.precision,
-        )
-        await pool.start()
-        await pool.wait_ready(1, cfg.worker_ready_s)
-        service.backend = lambda: RemoteDenoiser(pool, spec)
-        ready, n = len(pool.healthy), len(worker_addresses)
-        mode = f"{n} workers" if ready == n else f"{ready} of {n} workers ready (the rest are admitted as they answer)"
-    await set_serving(health, [POLICY_SERVICE], True)
-    log.info(
-        "policy %s on %s: %s, views %s, precision %s, %s",
-        spec.model_id,
-        address,
-        spec.action_space,
-        ",".join(views),
-        cfg.precision,
-        mode,
-    )
-    announce(f"ready policy {address}")
-    await stop.wait()
-    await set_serving(health, [POLICY_SERVICE], False)
-    await server.stop(grace=2.0)
-    if pool is not None:
-        await pool.close()
-    if engine is not None:
-        engine.close()
+        announce(f"ready policy {address}")
+        await stop.wait()
+        await set_serving(health, [POLICY_SERVICE], False)
+    finally:
+        await server.stop(grace=2.0)
+        if pool is not None:
+            await pool.close()
+        if engine is not None:
+            engine.close()
     return 0

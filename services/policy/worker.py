@@ -51,7 +51,7 @@ from grpc_reflection.v1alpha import reflection
 
 from services.core.tensors import from_tensor, to_tensor
 from services.pb import policy_pb2, policy_pb2_grpc
-from services.policy.checkpoint import LoadedPolicy, checkpoint_sha256, load_policy, model_id
+from services.policy.checkpoint import LoadedPolicy, checkpoint_sha256, inference_device, load_policy, model_id
 from services.policy.config import PRECISIONS
 from services.policy.model.fastpath import cast_matmul_weights
 from services.policy.transport import keepalive_server_options, message_size_options
@@ -122,8 +122,7 @@ class ModelEngine:
         self.device = next(self.policy.parameters()).device
         if precision not in PRECISIONS:
             raise ValueError(f"precision {precision!r}: {' or '.join(PRECISIONS)}")
-        if precision == "bf16" and self.device.type == "cuda" and not torch.cuda.is_bf16_supported():
-            raise ValueError(f"precision bf16: {self.device} does not support bfloat16; use precision fp32")
+        inference_device(self.device, precision)  # bf16 on a GPU without it: ValueError
         self.precision = precision  # "bf16": every pass under bfloat16 autocast; outputs float32 either way
         if precision == "bf16":
             cast_matmul_weights(self.policy, torch.bfloat16)

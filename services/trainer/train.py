@@ -416,9 +416,7 @@ def train(
         raw = {k[len("model.") :]: v for k, v in tensors.items() if k.startswith("model.")}
         ckpt.load_state_checked(policy, raw, f"{latest} (training weights)")
         if ema is not None:
-            from safetensors.torch import load_file
-
-            ckpt.load_state_checked(ema.model, load_file(str(latest / ckpt.MODEL_FILE)), f"{latest} (EMA weights)")
+            ckpt.load_state_checked(ema.model, ckpt.read_weights(latest / ckpt.MODEL_FILE), f"{latest} (EMA weights)")
         ckpt.optimizer_from_tensors(optim, tensors, state["optim_groups"])
         rng_key = f"rng.torch.{rank}"
         if rng_key in tensors:

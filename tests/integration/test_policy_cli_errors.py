@@ -1,0 +1,113 @@
+"""`viewscale serve` and `viewscale worker` refuse what they cannot run with one error line and an
+exit code, never a traceback: a device this machine lacks, unreadable weights, workers that never
+come up. Real processes, a tiny real checkpoint (and a copy of it with its weights cut short)."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from services.core.bus import free_tcp_port
+from services.policy.checkpoint import MODEL_FILE, CheckpointError, inference_device, load_policy, read_weights
+
+ROOT = Path(__file__).resolve().parents[2]
+NO_CUDA = not torch.cuda.is_available()
+
+
+def viewscale(*args: str, timeout: float = 120) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "services.cli", *args], cwd=ROOT, capture_output=True, text=True, timeout=timeout
+    )
+
+
+def no_traceback(stderr: str) -> None:
+    for junk in ("Traceback", "Exception ignored", "never awaited"):
+        assert junk not in stderr, stderr
+
+
+@pytest.fixture(scope="module")
+def cut_checkpoint(tiny_checkpoint, tmp_path_factory) -> Path:
+    """A copy of the tiny run whose model.safetensors lost all but its first 100 bytes (a copy cut short)."""
+    run = tmp_path_factory.mktemp("cut") / "run"
+    shutil.copytree(tiny_checkpoint, run)
+    [weights] = run.glob(f"checkpoints/*/{MODEL_FILE}")
+    weights.write_bytes(weights.read_bytes()[:100])
+    return run
+
+
+def test_inference_device_names_what_is_wrong():
+    assert inference_device("cpu") == torch.device("cpu")
+    assert inference_device(torch.device("cpu"), "bf16") == torch.device("cpu")
+    for bad in ("tpu", "cuda:x", "", "gpu0"):
+        with pytest.raises(ValueError, match="not a device name"):
+            inference_device(bad)
+    if NO_CUDA:
+        for name in ("cuda", "cuda:1"):
+            with pytest.raises(ValueError, match=f"device {name}: no CUDA device is visible"):
+                inference_device(name)
+    else:
+        n = torch.cuda.device_count()
+        with pytest.raises(ValueError, match=f"this machine has {n} CUDA device"):
+            inference_device(f"cuda:{n}")
+
+
+def test_weights_cut_short_are_a_checkpoint_error_naming_the_file(tiny_checkpoint, cut_checkpoint):
+    [weights] = cut_checkpoint.glob(f"checkpoints/*/{MODEL_FILE}")
+    with pytest.raises(CheckpointError, match=f"{weights} cannot be read"):
+        read_weights(weights)
+    with pytest.raises(CheckpointError, match="cannot be read"):
+        load_policy(cut_checkpoint)
+    with pytest.raises(CheckpointError, match="cannot be read"):
+        read_weights(weights.with_name("missing.safetensors"))
+    [good] = tiny_checkpoint.glob(f"checkpoints/*/{MODEL_FILE}")
+    assert read_weights(good)  # the original still reads: the copy was cut, not the source
+
+
+@pytest.mark.parametrize("command", ["worker", "serve"])
+@pytest.mark.parametrize("device", ["tpu", pytest.param("cuda", marks=pytest.mark.skipif(not NO_CUDA, reason="CUDA"))])
+def test_a_device_this_machine_lacks_is_one_line_before_listening(tiny_checkpoint, command, device):
+    proc = viewscale(command, "--checkpoint", str(tiny_checkpoint), "--listen", "127.0.0.1:0", "--device", device)
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr.strip().splitlines() == [proc.stderr.strip()]  # one line
+    assert proc.stderr.startswith(f"error: device {device!r}" if device == "tpu" else f"error: device {device}:")
+    assert "listening" not in proc.stdout  # refused before it bound a port
+
+
+@pytest.mark.parametrize("command", [["worker"], ["serve", "--in-process"]])
+def test_weights_cut_short_stop_the_process_with_one_error_line(cut_checkpoint, command):
+    proc = viewscale(command[0], "--checkpoint", str(cut_checkpoint), "--listen", "127.0.0.1:0", *command[1:])
+    assert proc.returncode == 1, proc.stderr
+    no_traceback(proc.stderr)
+    errors = [ln for ln in proc.stderr.splitlines() if ln.startswith("error: ")]
+    assert len(errors) == 1 and f"{MODEL_FILE} cannot be read" in errors[0], proc.stderr
+
+
+def test_a_local_worker_that_cannot_load_is_reported_with_its_own_error(cut_checkpoint):
+    """Without --log-dir the workers' stderr still reaches the server's log: the line saying a
+    worker exited quotes why, and the server gives up after worker_ready_s, stopped cleanly."""
+    proc = viewscale(
+        "serve", "--checkpoint", str(cut_checkpoint), "--listen", "127.0.0.1:0", "--workers", "1",
+        "--set", "worker_ready_s=6",
+    )  # fmt: skip
+    assert proc.returncode == 1, proc.stderr
+    no_traceback(proc.stderr)
+    exited = [ln for ln in proc.stderr.splitlines() if "local worker 0" in ln and "exited with code 1" in ln]
+    assert exited and f"{MODEL_FILE} cannot be read" in exited[0], proc.stderr
+    assert "error: 0 of 1 workers ready after 6s" in proc.stderr
+
+
+def test_workers_that_never_answer_end_the_server_cleanly(tiny_checkpoint):
+    closed = f"127.0.0.1:{free_tcp_port()}"  # nothing listens there
+    proc = viewscale(
+        "serve", "--checkpoint", str(tiny_checkpoint), "--listen", "127.0.0.1:0", "--worker", closed,
+        "--set", "worker_ready_s=1",
+    )  # fmt: skip
+    assert proc.returncode == 1, proc.stderr
+    assert "listening policy " in proc.stdout  # it had started its gRPC server: that is what it stops
+    no_traceback(proc.stderr)
+    assert f"error: 0 of 1 workers ready after 1s: {closed}" in proc.stderr
