@@ -81,6 +81,7 @@ def _serve(args: argparse.Namespace) -> int:
         return 2
     from services.policy.checkpoint import CheckpointError, inference_device
     from services.policy.server import LocalWorkers, load_spec, serve_policy
+    from services.policy.transport import ListenError
 
     try:
         load_spec(cfg)  # a bad checkpoint, view or device is one line, before any process starts
@@ -106,7 +107,7 @@ def _serve(args: argparse.Namespace) -> int:
                     supervisor.cancel()
 
             return _run(serve)
-    except (RuntimeError, TimeoutError, CheckpointError) as exc:  # (CheckpointError: weights unreadable)
+    except (RuntimeError, TimeoutError, CheckpointError, ListenError) as exc:  # (weights unreadable, port taken)
         return _error(exc, 1)
 
 
@@ -117,6 +118,7 @@ def _worker(args: argparse.Namespace) -> int:
     if cfg is None:
         return 2
     from services.policy.checkpoint import CheckpointError, inference_device, read_info
+    from services.policy.transport import ListenError
     from services.policy.worker import serve_worker
 
     try:
@@ -126,7 +128,7 @@ def _worker(args: argparse.Namespace) -> int:
         return _error(exc)
     try:
         return _run(lambda stop: serve_worker(cfg, stop, _announce))
-    except CheckpointError as exc:  # the weights, read once it listens
+    except (CheckpointError, ListenError) as exc:  # its port taken; the weights, read once it listens
         return _error(exc, 1)
 
 

@@ -2,9 +2,10 @@
 
 from __future__ import annotations
 
-from typing import Literal, get_args
+from pathlib import Path
+from typing import Annotated, Literal, get_args
 
-from pydantic import Field, model_validator
+from pydantic import BeforeValidator, Field, model_validator
 
 from services.core.config import Frozen, LogLevel
 
@@ -15,6 +16,19 @@ PLACEMENTS: tuple[str, ...] = get_args(Placement)
 # what the model's passes compute in: float32, or bfloat16 autocast (ModelEngine; `--precision`)
 Precision = Literal["fp32", "bf16"]
 PRECISIONS: tuple[str, ...] = get_args(Precision)
+
+
+def _host_port(value: object) -> str:
+    value = str(value)  # (a bare port arrives from YAML as an int)
+    host, sep, port = value.rpartition(":")
+    if not sep or not host or not port.isdigit() or int(port) > 65535:
+        # (grpc would take port 99999 as 34463 without a word)
+        raise ValueError(f"{value!r} is not host:port with a port of 0-65535 (e.g. 127.0.0.1:50051; 0: any free port)")
+    return value
+
+
+# where a server listens: host:port (a name, an IPv4 address, or [IPv6])
+Listen = Annotated[str, BeforeValidator(_host_port)]
 
 
 class TlsConfig(Frozen):
@@ -30,12 +44,16 @@ class TlsConfig(Frozen):
     def _pair(self) -> TlsConfig:
         if bool(self.cert) != bool(self.key):
             raise ValueError("tls needs both cert and key")
+        for name in ("cert", "key", "ca"):
+            path = getattr(self, name)
+            if path and not Path(path).is_file():
+                raise ValueError(f"tls.{name} {path}: no such file")
         return self
 
 
 class WorkerConfig(Frozen):
     checkpoint: str  # checkpoint folder or run directory (its latest checkpoint)
-    listen: str = "127.0.0.1:0"  # host:port; port 0 = the OS picks one (printed on the ready line)
+    listen: Listen = "127.0.0.1:0"  # host:port; port 0 = the OS picks one (printed on the ready line)
     device: str = "cpu"  # cpu, cuda, cuda:N
     threads: int = Field(1, ge=1)  # intra-op threads of the model (1 measured fastest per worker on 2 cores)
     # bf16: the passes under bfloat16 autocast (a GPU's fast path); the server's setting must match
@@ -51,7 +69,7 @@ class WorkerConfig(Frozen):
 
 class ServerConfig(Frozen):
     checkpoint: str  # checkpoint folder or run directory (its latest checkpoint)
-    listen: str = "127.0.0.1:50051"  # host:port; loopback unless you mean it (0.0.0.0 = every interface)
+    listen: Listen = "127.0.0.1:50051"  # host:port; loopback unless you mean it (0.0.0.0 = every interface)
     views: list[str] | None = None  # cameras composed when a request names none (default: the training views)
     rig: str | None = None  # rig preset or YAML adding cameras the checkpoint was not trained on
     task: str | None = None  # with rig: the task whose framing the rig takes (sim rigs frame per task)

@@ -65,7 +65,13 @@ from services.policy.config import PLACEMENTS
 from services.policy.model.diffusion import make_inference_scheduler
 from services.policy.model.policy import NoiseConfig
 from services.policy.observation import CameraSpec, InvalidRequest, Parsed, PolicySpec, model_inputs, parse
-from services.policy.transport import keepalive_channel_options, keepalive_server_options, message_size_options
+from services.policy.transport import (
+    EXCLUSIVE_PORT,
+    keepalive_channel_options,
+    keepalive_server_options,
+    listen_on,
+    message_size_options,
+)
 from services.policy.worker import (
     OPEN_METHODS,
     REPLICA_KEY,
@@ -1075,13 +1081,14 @@ async def serve_policy(cfg, stop: asyncio.Event, worker_addresses: list[str], an
         options=[
             *message_size_options(cfg.max_message_mb),
             *keepalive_server_options(),  # the robots' pings (PolicyClient keepalive_s)
+            *EXCLUSIVE_PORT,  # a port another process holds: an error, not shared
         ],
     )
     policy_pb2_grpc.add_PolicyServicer_to_server(service, server)
     health = add_health_and_reflection(server, [POLICY_SERVICE])
     await set_serving(health, [POLICY_SERVICE], False)
     creds = server_credentials(cfg.tls)
-    port = server.add_secure_port(cfg.listen, creds) if creds else server.add_insecure_port(cfg.listen)
+    port = listen_on(server, cfg.listen, creds)
     address = f"{cfg.listen.rsplit(':', 1)[0]}:{port}"
     await server.start()
     announce(f"listening policy {address}")

@@ -16,6 +16,52 @@ from __future__ import annotations
 KEEPALIVE_MIN_PING_MS = 500
 
 
+class ListenError(OSError):
+    """A server cannot listen on the address it was given."""
+
+
+# grpc servers set SO_REUSEPORT by default: a second server on a port another process holds would
+# start without a word and the kernel would hand each new connection to either of them (a robot
+# could get last week's policy). Every server here turns it off: the second one fails instead.
+EXCLUSIVE_PORT = [("grpc.so_reuseport", 0)]
+
+
+def listen_on(server, address: str, credentials=None) -> int:
+    """Bind a grpc (or grpc.aio) server made with EXCLUSIVE_PORT to ``address``; its port (port 0:
+    any free one). ListenError naming the address and the reason when it cannot."""
+    try:
+        return server.add_secure_port(address, credentials) if credentials else server.add_insecure_port(address)
+    except RuntimeError:  # grpc says only "Failed to bind to address ..."
+        raise ListenError(f"cannot listen on {address}: {_why_not_bound(address)}") from None
+
+
+def _why_not_bound(address: str) -> str:
+    """The reason a bind to host:port fails, found by trying it with a plain socket."""
+    import errno
+    import socket
+
+    host, _, port = address.rpartition(":")
+    host = host.strip("[]")
+    try:
+        infos = socket.getaddrinfo(host or None, int(port), type=socket.SOCK_STREAM)
+    except ValueError:
+        return "not host:port (e.g. 127.0.0.1:50051, or 0.0.0.0:7001 for every interface)"
+    except socket.gaierror:
+        return f"{host!r} is not a name or address this machine resolves"
+    for family, kind, proto, _, sockaddr in infos:
+        with socket.socket(family, kind, proto) as sock:
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            try:
+                sock.bind(sockaddr)
+            except OSError as exc:
+                if exc.errno == errno.EADDRINUSE:
+                    return "another process holds the port"
+                if exc.errno == errno.EADDRNOTAVAIL:
+                    return f"{host} is not an address of this machine (0.0.0.0 listens on every interface)"
+                return exc.strerror or str(exc)
+    return "grpc could not bind it (GRPC_VERBOSITY=debug says why)"
+
+
 def message_size_options(max_mb: int) -> list[tuple[str, int]]:
     """Channel or server options: messages of at most ``max_mb`` MiB, both ways."""
     size = max_mb << 20

@@ -54,7 +54,7 @@ from services.pb import policy_pb2, policy_pb2_grpc
 from services.policy.checkpoint import LoadedPolicy, checkpoint_sha256, inference_device, load_policy, model_id
 from services.policy.config import PRECISIONS
 from services.policy.model.fastpath import cast_matmul_weights
-from services.policy.transport import keepalive_server_options, message_size_options
+from services.policy.transport import EXCLUSIVE_PORT, keepalive_server_options, listen_on, message_size_options
 
 log = logging.getLogger(__name__)
 
@@ -574,6 +574,7 @@ async def serve_worker(cfg, stop: asyncio.Event, announce=print) -> int:
         options=[
             *message_size_options(cfg.max_message_mb),
             *keepalive_server_options(),  # the policy server's pings (services.policy.transport)
+            *EXCLUSIVE_PORT,  # a port another process holds: an error, not shared
         ],
         maximum_concurrent_rpcs=cfg.max_streams,
     )
@@ -591,7 +592,7 @@ async def serve_worker(cfg, stop: asyncio.Event, announce=print) -> int:
 
     serving(False)
     creds = server_credentials(cfg.tls)
-    port = server.add_secure_port(cfg.listen, creds) if creds else server.add_insecure_port(cfg.listen)
+    port = listen_on(server, cfg.listen, creds)
     host = cfg.listen.rsplit(":", 1)[0]
     address = f"{host}:{port}"
     server.start()

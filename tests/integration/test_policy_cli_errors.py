@@ -1,6 +1,7 @@
 """`viewscale serve` and `viewscale worker` refuse what they cannot run with one error line and an
 exit code, never a traceback: a device this machine lacks, unreadable weights, workers that never
-come up. Real processes, a tiny real checkpoint (and a copy of it with its weights cut short)."""
+come up, an address they cannot listen on. Real processes, a tiny real checkpoint (and a copy of it
+with its weights cut short)."""
 
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from policy_processes import start_worker, stop
 
 from services.core.bus import free_tcp_port
 from services.policy.checkpoint import MODEL_FILE, CheckpointError, inference_device, load_policy, read_weights
@@ -80,7 +82,7 @@ def test_a_device_this_machine_lacks_is_one_line_before_listening(tiny_checkpoin
 
 @pytest.mark.parametrize("command", [["worker"], ["serve", "--in-process"]])
 def test_weights_cut_short_stop_the_process_with_one_error_line(cut_checkpoint, command):
-    proc = viewscale(command[0], "--checkpoint", str(cut_checkpoint), "--listen", "127.0.0.1:0", *command[1:])
+    proc = viewscale(*command, "--checkpoint", str(cut_checkpoint), "--listen", "127.0.0.1:0")
     assert proc.returncode == 1, proc.stderr
     no_traceback(proc.stderr)
     errors = [ln for ln in proc.stderr.splitlines() if ln.startswith("error: ")]
@@ -111,3 +113,46 @@ def test_workers_that_never_answer_end_the_server_cleanly(tiny_checkpoint):
     assert "listening policy " in proc.stdout  # it had started its gRPC server: that is what it stops
     no_traceback(proc.stderr)
     assert f"error: 0 of 1 workers ready after 1s: {closed}" in proc.stderr
+
+
+@pytest.mark.parametrize("command", [["serve", "--in-process"], ["worker"]])
+def test_a_port_another_server_holds_is_refused_not_shared(tiny_checkpoint, command):
+    """grpc binds with SO_REUSEPORT unless told not to: a second server on a worker's port would
+    start, and the kernel would hand each new connection to either. Here it is refused."""
+    holder, address = start_worker(tiny_checkpoint)
+    try:
+        proc = viewscale(*command, "--checkpoint", str(tiny_checkpoint), "--listen", address)
+        assert proc.returncode == 1, proc.stdout + proc.stderr
+        assert f"error: cannot listen on {address}: another process holds the port" in proc.stderr
+        assert "ready " not in proc.stdout
+        no_traceback(proc.stderr)
+    finally:
+        stop(holder)
+
+
+@pytest.mark.parametrize(
+    "listen, code, says",
+    [
+        ("192.0.2.1:0", 1, "cannot listen on 192.0.2.1:0: 192.0.2.1 is not an address of this machine"),
+        ("no-such-host.invalid:0", 1, "'no-such-host.invalid' is not a name or address this machine resolves"),
+        ("127.0.0.1:99999", 2, "listen: Value error, '127.0.0.1:99999' is not host:port with a port of 0-65535"),
+        ("7001", 2, "listen: Value error, '7001' is not host:port"),
+    ],
+)
+def test_an_address_it_cannot_listen_on_is_one_line(tiny_checkpoint, listen, code, says):
+    proc = viewscale("worker", "--checkpoint", str(tiny_checkpoint), "--listen", listen)
+    assert proc.returncode == code, proc.stderr
+    assert says in proc.stderr
+    assert [ln for ln in proc.stderr.splitlines() if ln.startswith("error: ")] == [proc.stderr.strip().splitlines()[-1]]
+    no_traceback(proc.stderr)
+
+
+def test_a_tls_file_that_is_not_there_is_a_config_error(tiny_checkpoint):
+    proc = viewscale(
+        "serve", "--checkpoint", str(tiny_checkpoint), "--set", "tls.cert=/nonexistent/cert.pem",
+        "--set", "tls.key=/nonexistent/key.pem",
+    )  # fmt: skip
+    assert proc.returncode == 2, proc.stderr
+    assert "tls.cert /nonexistent/cert.pem: no such file" in proc.stderr
+    no_traceback(proc.stderr)
+
