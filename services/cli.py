@@ -93,9 +93,13 @@ def _eval(args: argparse.Namespace) -> int:
 
     views = [v.strip() for v in args.views.split(",") if v.strip()] if args.views else None
     gamma = None
+    if args.gamma:
+        try:
+            gamma = {k.strip(): float(v) for k, v in (item.split("=", 1) for item in args.gamma.split(","))}
+        except ValueError:
+            print(f"error: --gamma must look like F=0.5,FL=0.25, got {args.gamma!r}", file=sys.stderr)
+            return 2
     try:
-        if args.gamma:
-            gamma = {k: float(v) for k, v in (item.split("=", 1) for item in args.gamma.split(","))}
         spec = EvalSpec(
             task=args.task,
             episodes=args.episodes,
@@ -116,9 +120,6 @@ def _eval(args: argparse.Namespace) -> int:
         for sig in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):
             signal.signal(sig, _interrupt)
         result = evaluate(spec, Path(args.out))
-    except ValueError as exc:
-        print(f"error: --gamma must look like F=0.5,FL=0.25 ({exc})", file=sys.stderr)
-        return 2
     except (EvalError, CollectError, ConfigError, CheckpointError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
@@ -136,6 +137,15 @@ def _eval(args: argparse.Namespace) -> int:
             f"underruns {r['underruns']}, degraded answers {r['degraded_answers']}"
         )
     print(f"report {result.out / 'report.md'}; rollouts {result.out / 'rollouts'}")
+    if not r["expert"] and r["failed_requests"]:
+        every = r["failed_requests"] == r["requests"]
+        print(
+            f"{'error' if every else 'warning'}: {r['failed_requests']} of {r['requests']} GetAction requests failed "
+            f"(the robot held still meanwhile); the first: {r['first_error']}",
+            file=sys.stderr,
+        )
+        if every:  # not a policy that failed the task: nothing was evaluated
+            return 1
     return 0
 
 

@@ -24,6 +24,7 @@ first N episodes from one camera with the outcome marked.
 from __future__ import annotations
 
 import json
+import math
 import os
 import statistics
 import subprocess
@@ -201,6 +202,7 @@ def _episode_rows(result, stats: dict[str, dict]) -> list[dict[str, Any]]:
                 "stale_dropped": s.get("stale_dropped"),
                 "degraded": s.get("degraded"),
                 "failed_requests": s.get("failed"),
+                "first_error": s.get("first_error"),
             }
         )
     return rows
@@ -239,6 +241,7 @@ def summarise(
         "stale_dropped": total("stale_dropped"),
         "degraded_answers": total("degraded"),
         "failed_requests": total("failed_requests"),
+        "first_error": next((r["first_error"] for r in rows if r.get("first_error")), None),
         "wall_s": round(seconds, 1),
     }
 
@@ -259,10 +262,12 @@ def format_report(rep: dict[str, Any], rows: list[dict[str, Any]]) -> str:
             f"- GetAction: p50 {rep['getaction_ms_p50']:.1f} ms, p99 {rep['getaction_ms_p99']:.1f} ms over "
             f"{rep['requests']} requests"
             if rep["getaction_ms_p50"] is not None
-            else "- GetAction: no requests",
+            else f"- GetAction: no answer to any of {rep['requests'] or 0} requests",
             f"- underruns {rep['underruns']}, stale actions dropped {rep['stale_dropped']}, degraded answers "
             f"{rep['degraded_answers']}, failed requests {rep['failed_requests']}",
         ]
+        if rep.get("first_error"):
+            lines.append(f"- first failed request: {rep['first_error']}")
     lines += ["", "| seed | outcome | ticks | requests | p50 ms | underruns | file |", "|---|---|---|---|---|---|---|"]
     for r in rows:
         p50 = f"{r['latency_p50_ms']:.1f}" if r["latency_p50_ms"] is not None else "-"
@@ -272,6 +277,21 @@ def format_report(rep: dict[str, Any], rows: list[dict[str, Any]]) -> str:
             f"{r['underruns'] if r['underruns'] is not None else '-'} | {Path(r['path']).name} |"
         )
     return "\n".join(lines) + "\n"
+
+
+def _check_gamma(spec: EvalSpec, views: list[str]) -> None:
+    """The server's rules for composition weights, before any process starts: a request it would
+    refuse every time would make the whole evaluation a row of failures."""
+    if spec.expert:
+        raise EvalError("--gamma weights the policy's views: not with --expert")
+    unknown = [v for v in spec.gamma if v not in views]
+    if unknown:
+        raise EvalError(f"--gamma names {', '.join(unknown)}: not among the composed views {','.join(views)} (--views)")
+    bad = [v for v, g in spec.gamma.items() if not math.isfinite(g) or g < 0]
+    if bad:
+        raise EvalError(f"--gamma {bad[0]}={spec.gamma[bad[0]]}: a weight must be finite and non-negative")
+    if len(spec.gamma) == len(views) and sum(spec.gamma.values()) <= 0:
+        raise EvalError("--gamma: the weights sum to zero")
 
 
 def evaluate(spec: EvalSpec, out: Path, progress: Callable[[str], None] = print) -> EvalResult:
@@ -302,6 +322,8 @@ def evaluate(spec: EvalSpec, out: Path, progress: Callable[[str], None] = print)
     rig = spec.rig or (facts["rigs"][0] if facts and len(facts["rigs"]) == 1 else None) or "five15"
     size = spec.size or (facts["size"][0] if facts and facts["size"] else 84)
     views = spec.views or (facts["views"] if facts else None)
+    if spec.gamma:
+        _check_gamma(spec, views or [])
     rollouts = out / "rollouts"
     if rollouts.exists() and any(rollouts.glob("*.mcap")):
         raise EvalError(f"{rollouts} already holds rollouts: pick another --out (or remove it)")

@@ -49,6 +49,7 @@ class PolicyTeleop(TeleopDriver):
             raise ValueError(f"the policy server knows no camera {', '.join(unknown)} ({', '.join(sorted(known))})")
         self.runner: ChunkRunner | None = None
         self.episode_id = ""
+        self.first_error: str | None = None
         self.episode_stats: dict[str, dict] = {}
         log.info(
             "policy %s at %s: views %s, %s",
@@ -71,6 +72,7 @@ class PolicyTeleop(TeleopDriver):
             "underruns": s.underruns,
             "stale_dropped": s.stale_dropped,
             "latency_ms": [round(x * 1e3, 3) for x in lat],
+            "first_error": self.first_error,  # why the first failed GetAction failed (None: none did)
         }
         self.episode_stats[self.episode_id] = row
         if self.cfg.stats_file:
@@ -80,6 +82,7 @@ class PolicyTeleop(TeleopDriver):
     def reset(self, task: str, episode_id: str = "") -> None:
         self._finish_episode()
         self.episode_id = episode_id
+        self.first_error = None
         seed = self.cfg.seed if self.cfg.seed is not None else zlib.crc32(episode_id.encode()) * 1000
         self.runner = ChunkRunner(
             self.client,
@@ -91,6 +94,8 @@ class PolicyTeleop(TeleopDriver):
         )
 
     def _on_error(self, exc: PolicyError) -> None:
+        if self.first_error is None:
+            self.first_error = str(exc)
         log.warning("GetAction failed in %s: %s (holding still)", self.episode_id, exc)
 
     def act(self, state: RobotState, task: TaskState | None, frames: dict[str, CameraFrame]) -> EefDelta:

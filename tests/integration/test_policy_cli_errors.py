@@ -5,6 +5,7 @@ with its weights cut short)."""
 
 from __future__ import annotations
 
+import json
 import shutil
 import subprocess
 import sys
@@ -12,7 +13,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from policy_processes import start_worker, stop
+from policy_processes import start_server, start_worker, stop
 
 from services.core.bus import free_tcp_port
 from services.policy.checkpoint import MODEL_FILE, CheckpointError, inference_device, load_policy, read_weights
@@ -156,3 +157,44 @@ def test_a_tls_file_that_is_not_there_is_a_config_error(tiny_checkpoint):
     assert "tls.cert /nonexistent/cert.pem: no such file" in proc.stderr
     no_traceback(proc.stderr)
 
+
+@pytest.mark.parametrize(
+    "args, says",
+    [
+        (["--views", "F,FL", "--gamma", "F=-1,FL=2"], "--gamma F=-1.0: a weight must be finite and non-negative"),
+        (["--views", "F", "--gamma", "F=0.5,XX=0.5"], "--gamma names XX: not among the composed views F (--views)"),
+        (["--views", "F,FL", "--gamma", "F=0,FL=0"], "--gamma: the weights sum to zero"),
+        (["--gamma", "F=x"], "--gamma must look like F=0.5,FL=0.25, got 'F=x'"),
+    ],
+)
+def test_eval_refuses_weights_the_server_would_refuse_before_starting_anything(tiny_checkpoint, tmp_path, args, says):
+    out = tmp_path / "eval"
+    proc = viewscale("eval", "--checkpoint", str(tiny_checkpoint), "--episodes", "1", "--out", str(out), *args)
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr.strip() == f"error: {says}"
+    assert not out.exists()  # nothing started, nothing written
+
+
+def test_eval_whose_every_request_fails_exits_1_with_the_first_refusal(tiny_checkpoint, tmp_path):
+    """The server's only worker killed: every GetAction is refused. That is not a policy scoring
+    0 %: eval exits 1 quoting the first refusal, and the report says so."""
+    worker, worker_address = start_worker(tiny_checkpoint)
+    server, address = start_server(tiny_checkpoint, "--worker", worker_address)
+    try:
+        worker.kill()
+        worker.wait()
+        out = tmp_path / "eval"
+        proc = viewscale(
+            "eval", "--server", address, "--task", "lift", "--episodes", "1", "--max-ticks", "12", "--out", str(out),
+            timeout=300,
+        )  # fmt: skip
+        assert proc.returncode == 1, proc.stdout[-2000:] + proc.stderr[-2000:]
+        s = json.loads((out / "report.json").read_text())["summary"]
+        n = s["requests"]
+        assert n > 0 and s["failed_requests"] == n and "UNAVAILABLE" in s["first_error"]
+        assert f"error: {n} of {n} GetAction requests failed" in proc.stderr and s["first_error"] in proc.stderr
+        report = (out / "report.md").read_text()
+        assert f"no answer to any of {n} requests" in report and f"first failed request: {s['first_error']}" in report
+    finally:
+        stop(server)
+        stop(worker)
