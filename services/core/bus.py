@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import logging
+import re
 import socket
 import time
 from collections import Counter
@@ -131,8 +132,13 @@ def _zenoh_config(cfg: BusConfig) -> zenoh.Config:
     conf.insert_json5("mode", json.dumps(cfg.mode))
     # A peer with no explicit listen endpoint would listen on every interface; stay local.
     listen = cfg.listen or (["tcp/127.0.0.1:0"] if cfg.mode == "peer" else [])
-    conf.insert_json5("listen/endpoints", json.dumps(listen))
-    conf.insert_json5("connect/endpoints", json.dumps(list(cfg.connect)))
+    for key, endpoints in (("listen", listen), ("connect", list(cfg.connect))):
+        try:
+            conf.insert_json5(f"{key}/endpoints", json.dumps(endpoints))
+        except zenoh.ZError as exc:  # e.g. no protocol: "Endpoints must be of the form <protocol>/<address>..."
+            raise ConfigError(
+                f"bus.{key} {', '.join(endpoints)}: {zenoh_reason(exc)} (e.g. tcp/127.0.0.1:7447)"
+            ) from None
     if cfg.connect:
         conf.insert_json5("connect/timeout_ms", json.dumps(int(cfg.connect_timeout_s * 1000)))
         conf.insert_json5("connect/retry", "{period_init_ms: 100, period_max_ms: 1000, period_increase_factor: 2}")
@@ -161,8 +167,19 @@ def _accepts_tcp(endpoints: list[str], timeout: float = 1.0) -> bool:
     return False
 
 
+def zenoh_reason(exc: Exception) -> str:
+    """A zenoh error's message without the Rust source location zenoh appends (`` at /root/.cargo/...rs:62.``)."""
+    text = str(exc)
+    text = re.sub(r"Json5Err\(Message \{ msg: \"(.*?)\", location: .*", r"\1", text, flags=re.S)
+    text = re.sub(r" at /\S+\.rs:\d+\.?", "", text)
+    return text.strip().rstrip(".")
+
+
 def _open_error(cfg: BusConfig, exc: Exception) -> ConnectionError:
-    where = ", ".join(cfg.connect) or "(no endpoint)"
+    if not cfg.connect:  # it only listens (a router, a peer): what failed is its listening
+        listen = ", ".join(cfg.listen) or "(default endpoints)"
+        return ConnectionError(f"cannot open a Zenoh {cfg.mode} session listening on {listen}: {zenoh_reason(exc)}")
+    where = ", ".join(cfg.connect)
     if cfg.mode == "client" and _accepts_tcp(cfg.connect):
         # The router is there and still no session: zenoh refuses a failed authentication silently.
         if cfg.user is not None:
@@ -176,7 +193,7 @@ def _open_error(cfg: BusConfig, exc: Exception) -> ConnectionError:
         )
     return ConnectionError(
         f"cannot open a Zenoh {cfg.mode} session to {where} "
-        f"within {cfg.connect_timeout_s:.0f}s (is the router running?): {exc}"
+        f"within {cfg.connect_timeout_s:.0f}s (is the router running?): {zenoh_reason(exc)}"
     )
 
 

@@ -102,3 +102,30 @@ def test_unreachable_router_is_a_clear_error():
     endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
     with pytest.raises(ConnectionError, match="is the router running"):
         Bus(BusConfig(mode="client", connect=[endpoint], connect_timeout_s=0.5))
+
+
+def test_an_endpoint_without_a_protocol_is_a_config_error_naming_it():
+    from services.core.config import ConfigError
+
+    for cfg, key in (
+        (BusConfig(mode="router", listen=["bogus"]), "listen"),
+        (BusConfig(mode="client", connect=["x"]), "connect"),
+    ):
+        with pytest.raises(
+            ConfigError, match=rf"bus\.{key} .*: Endpoints must be of the form <protocol>/<address>"
+        ) as err:
+            Bus(cfg)
+        assert ".cargo" not in str(err.value) and "Json5Err" not in str(err.value)  # zenoh's internals left out
+
+
+def test_a_router_port_another_router_holds_says_so():
+    from services.core.bus import free_tcp_port, router
+
+    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+    first = router([endpoint])
+    try:
+        with pytest.raises(ConnectionError, match=rf"listening on {endpoint}: .*Address already in use") as err:
+            Bus(BusConfig(mode="router", listen=[endpoint]))
+        assert "is the router running" not in str(err.value) and ".cargo" not in str(err.value)
+    finally:
+        first.close()
