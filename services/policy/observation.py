@@ -169,7 +169,8 @@ def parse(req: ActionRequest, spec: PolicySpec, default_views: list[str]) -> Par
     for v in views:
         cam = by_name.get(v)
         if cam is None:
-            raise InvalidRequest(f"images[{v!r}]: missing (the request composes {', '.join(views)})")
+            sent = ", ".join(by_name) or "none"
+            raise InvalidRequest(f"images[{v!r}]: missing (the request composes {', '.join(views)}; it sent {sent})")
         if len(cam.frames) != spec.To:
             raise InvalidRequest(f"images[{v!r}]: expected {spec.To} frames, got {len(cam.frames)}")
         c = spec.cameras[v]

@@ -504,8 +504,11 @@ def test_malformed_requests_are_refused_with_the_field_and_the_server_stays_up(c
             if kind == 10:
                 del req.states[:]
                 return req, "states: expected 2 states, got 0"
+            if i % 24 == 11:  # a name the server does not know, in place of F: said back
+                req.cameras[0].name = "front"
+                return req, "images['F']: missing (the request composes F, FL; it sent front, FL, FR)"
             del req.cameras[:]
-            return req, "images['F']: missing"
+            return req, "images['F']: missing (the request composes F, FL; it sent none)"
 
         codes = {}
         for i in range(1000):
