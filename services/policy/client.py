@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 
 import grpc
 import numpy as np
+from grpc_health.v1 import health_pb2, health_pb2_grpc
 
 from services.core.tensors import encode_jpeg, to_tensor
 from services.pb import policy_pb2, policy_pb2_grpc
@@ -30,6 +31,8 @@ from services.policy import POLICY_PROTO_VERSION
 from services.policy.transport import keepalive_channel_options, message_size_options
 
 Image = bytes | np.ndarray  # JPEG bytes, or (H, W, 3) uint8 RGB
+
+POLICY_SERVICE = policy_pb2.DESCRIPTOR.services_by_name["Policy"].full_name  # its name in grpc.health.v1
 
 
 class PolicyError(RuntimeError):
@@ -126,7 +129,9 @@ class PolicyClient:
 
     # -- connection ----------------------------------------------------------------------------
     def _connect(self, timeout_s: float) -> policy_pb2.PolicyInfo:
-        """Retry until the server answers GetPolicyInfo (it may still be starting)."""
+        """Retry until the server answers GetPolicyInfo (it may still be starting), then until its
+        health says SERVING: it describes its policy while the model loads or its first worker
+        comes up, but answers GetAction only after (UNAVAILABLE before)."""
         deadline = time.monotonic() + timeout_s
         delay, last = 0.1, ""
         while True:
@@ -153,7 +158,31 @@ class PolicyClient:
                 f"{self.address} speaks policy protocol v{info.proto_version}, this client "
                 f"v{POLICY_PROTO_VERSION}: update one of them"
             )
+        self._wait_serving(deadline, timeout_s)
         return info
+
+    def _wait_serving(self, deadline: float, timeout_s: float) -> None:
+        health = health_pb2_grpc.HealthStub(self.channel)
+        req = health_pb2.HealthCheckRequest(service=POLICY_SERVICE)
+        delay = 0.1
+        while True:
+            try:
+                status = health.Check(req, timeout=min(5.0, timeout_s)).status
+                if status == health_pb2.HealthCheckResponse.SERVING:
+                    return
+                last = health_pb2.HealthCheckResponse.ServingStatus.Name(status)
+            except grpc.RpcError as exc:
+                if exc.code() in (grpc.StatusCode.UNIMPLEMENTED, grpc.StatusCode.NOT_FOUND):
+                    return  # a server (or proxy) without this health entry: GetAction will tell
+                last = f"{exc.code().name}: {exc.details()}"
+            if time.monotonic() + delay > deadline:
+                raise PolicyError(
+                    f"the policy server at {self.address} answers but is not serving after {timeout_s:.0f}s "
+                    f"(health {last}: its model is loading, or none of its workers is ready)",
+                    grpc.StatusCode.UNAVAILABLE,
+                )
+            time.sleep(delay)
+            delay = min(2 * delay, 1.0)
 
     def _check_server(self, reply: policy_pb2.ActionReply) -> None:
         """Refuse a chunk the held PolicyInfo does not describe.

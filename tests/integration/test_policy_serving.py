@@ -668,7 +668,7 @@ def test_a_robot_leaves_a_frozen_policy_server_after_a_keepalive(checkpoint, obs
             stop(p)
 
 
-def test_health_is_not_serving_until_a_worker_is_ready(checkpoint):
+def test_health_is_not_serving_until_a_worker_is_ready(checkpoint, observations):
     port, never = free_tcp_port(), free_tcp_port()  # a worker that starts late, and one that never does
     proc = subprocess.Popen(
         [
@@ -701,9 +701,20 @@ def test_health_is_not_serving_until_a_worker_is_ready(checkpoint):
         with pytest.raises(grpc.RpcError) as err:
             policy_pb2_grpc.PolicyStub(grpc.insecure_channel(addr)).GetAction(policy_pb2.ActionRequest(), timeout=5)
         assert err.value.code() == grpc.StatusCode.UNAVAILABLE
+        # the robot's client answers GetPolicyInfo meanwhile, but connects only once the server serves
+        with pytest.raises(PolicyError, match=r"answers but is not serving after 2s \(health NOT_SERVING"):
+            PolicyClient(addr, connect_timeout_s=2)
+        connected: list[PolicyClient] = []
+        waiting = threading.Thread(target=lambda: connected.append(PolicyClient(addr, connect_timeout_s=120)))
+        waiting.start()
+        time.sleep(1.0)
+        assert not connected  # still waiting for SERVING
         worker = start_worker(checkpoint, port=port)
         assert proc.stdout.readline().startswith("ready policy ")
         assert check() == health_pb2.HealthCheckResponse.SERVING
+        waiting.join(120)
+        frames, states = observations[0]
+        assert connected and connected[0].get_action(frames, states).actions.shape == (16, 7)  # no UNAVAILABLE
     finally:
         stop(proc)
         if worker:
