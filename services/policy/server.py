@@ -83,7 +83,7 @@ from services.policy.worker import (
 
 log = logging.getLogger(__name__)
 
-POLICY_SERVICE = "viewscale.v1.Policy"
+POLICY_SERVICE = policy_pb2.DESCRIPTOR.services_by_name["Policy"].full_name  # "viewscale.v1.Policy"
 DEFAULT_TIMEOUT_S = 5.0  # a GetAction without a deadline gets this one
 
 
@@ -344,6 +344,14 @@ class WorkerPool:
             # A connection whose peer stopped answering (a frozen process, a host cut off: the
             # socket stays open) is closed after a ping goes unanswered, so the balancer leaves it.
             *keepalive_channel_options(keepalive_s),
+            # A name is resolved again when a connection of it fails, but by default not within
+            # 30 s of the last time: a replica killed when the server knew no other (it resolved
+            # before the others were up, or they were added since) left the whole address
+            # UNAVAILABLE that long, live replicas or not. Measured with compose (one replica
+            # killed just after a second was added): 25 s and 97 requests refused; with this and
+            # the streams waiting for a ready replica (RemoteDenoiser._open), answers again after
+            # 1.2 s, 0 or 1 request refused (100 ms instead of 1000 gave the same)
+            ("grpc.dns_min_time_between_resolutions_ms", 1000),
         ]
         for addr in addresses:
             ch = (
@@ -560,7 +568,9 @@ class RemoteDenoiser:
         ``tries`` > 1 (moving a view to a balanced address): that many streams at once, which
         the balancer gives to different replicas; the first to answer is kept, the rest cancelled."""
         s = self._streams[view]
-        calls = [s.call] + [s.worker.stub.Denoise(metadata=self.pool._metadata) for _ in range(tries - 1)]
+        calls = [s.call] + [
+            s.worker.stub.Denoise(metadata=self.pool._metadata, wait_for_ready=True) for _ in range(tries - 1)
+        ]
         waits = {asyncio.ensure_future(c.initial_metadata()): c for c in calls}
         kept, replica = None, None
         try:
@@ -616,7 +626,9 @@ class RemoteDenoiser:
             if v not in placed:
                 self._dropped.setdefault(v, "no healthy worker")
         for v, w in placed.items():
-            self._streams[v] = _Stream(w, w.stub.Denoise(metadata=self.pool._metadata))
+            # behind a balanced address a stream waits (within its deadline) for a replica to be
+            # ready, rather than failing while the name is resolved again after one went away
+            self._streams[v] = _Stream(w, w.stub.Denoise(metadata=self.pool._metadata, wait_for_ready=w.balanced))
         # The views that share a worker form a group there: one forward pass for all of them per
         # step. Behind a balanced address the streams may have reached different replicas (a
         # replica would wait for members that went elsewhere): each stream says which replica took
@@ -1118,7 +1130,7 @@ async def serve_policy(cfg, stop: asyncio.Event, worker_addresses: list[str], an
             await pool.wait_ready(1, cfg.worker_ready_s)
             service.backend = lambda: RemoteDenoiser(pool, spec)
             ready, n = len(pool.healthy), len(worker_addresses)
-            mode = f"{n} workers"
+            mode = f"{n} worker{'s' * (n != 1)}"
             if ready < n:
                 mode = f"{ready} of {n} workers ready (the rest are admitted as they answer)"
         await set_serving(health, [POLICY_SERVICE], True)

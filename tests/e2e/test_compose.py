@@ -23,6 +23,7 @@ import pytest
 from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
 
+from services.core.bus import free_tcp_port
 from services.core.rig import load_rig
 
 pytestmark = [pytest.mark.docker, pytest.mark.slow]
@@ -197,3 +198,73 @@ def test_the_serve_profile_runs_a_server_over_every_worker_replica(engine):
     [port] = server["ports"]
     assert port["host_ip"] == "127.0.0.1" and port["target"] == 50051
     assert "ports" not in worker
+
+
+@pytest.mark.long  # builds the serving image: torch and its CUDA libraries, about 7 GB
+def test_the_serve_profile_answers_from_the_host_and_goes_on_when_a_replica_it_knew_alone_dies(
+    compose_env, tiny_checkpoint
+):
+    """`docker compose --profile serve up --scale policy-worker=N policy policy-worker`, as
+    docker-compose.yml says to run it, on a real checkpoint volume: the robot's client on the host
+    connects through the published loopback port (once the server serves) and gets chunks composed
+    over every view. Then a second replica is added and the first, the only one the server has
+    resolved so far, is killed: the server finds the new one within seconds (grpc's default was
+    to resolve the name again only 30 s after the last time: 25 s of refusals, measured)."""
+    from services.policy.client import PolicyClient, PolicyError, State
+
+    port = free_tcp_port()
+    env = dict(
+        compose_env,
+        VIEWSCALE_CHECKPOINT=str(tiny_checkpoint),
+        VIEWSCALE_POLICY_PORT=str(port),
+        COMPOSE_PROJECT_NAME=f"viewscale-serve-{os.getpid()}",
+    )
+    serve = ["docker", "compose", "--profile", "serve"]
+    proc = run([*serve, "build", "policy"], timeout=2400, env=env)
+    assert proc.returncode == 0, output(proc)
+
+    def replicas() -> list[str]:
+        return run([*serve, "ps", "-q", "policy-worker"], timeout=60, env=env).stdout.split()
+
+    def serving(container: str) -> bool:
+        probe = (
+            "import grpc; from grpc_health.v1 import health_pb2 as h, health_pb2_grpc as g; "
+            "r = g.HealthStub(grpc.insecure_channel('127.0.0.1:7001')).Check(h.HealthCheckRequest(), timeout=5); "
+            "raise SystemExit(r.status != h.HealthCheckResponse.SERVING)"
+        )
+        return run(["docker", "exec", container, "python", "-c", probe], timeout=60).returncode == 0
+
+    try:
+        proc = run([*serve, "up", "-d", "--scale", "policy-worker=1", "policy", "policy-worker"], timeout=600, env=env)
+        assert proc.returncode == 0, output(proc)
+        client = PolicyClient(f"127.0.0.1:{port}", connect_timeout_s=300)
+        views = tuple(client.info.default_views)
+        h, w = client.info.cameras[0].height, client.info.cameras[0].width
+        image = np.zeros((h, w, 3), np.uint8)
+        frames = {v: [(image, 1), (image, 2)] for v in views}
+        states = [State(np.array([0.5, 0.0, 0.2]), np.array([1.0, 0, 0, 0]), 0.0, t) for t in (1, 2)]
+        chunk = client.get_action(frames, states)
+        assert chunk.actions.shape == (client.info.pred_horizon, 7) and chunk.views_used == views
+        [first] = replicas()
+        more = [*serve, "up", "-d", "--no-recreate", "--scale", "policy-worker=2", "policy-worker"]
+        proc = run(more, timeout=600, env=env)
+        assert proc.returncode == 0, output(proc)
+        [second] = [c for c in replicas() if c != first]
+        deadline = time.monotonic() + 120
+        while not serving(second):
+            assert time.monotonic() < deadline, "the second replica did not load its model in 2 minutes"
+            time.sleep(1)
+        assert run(["docker", "kill", first], timeout=60).returncode == 0
+        killed, refused, answered = time.monotonic(), [], []
+        while len(answered) < 10:
+            try:
+                answered.append(client.get_action(frames, states))
+            except PolicyError as exc:
+                assert not answered, f"refused after answering again: {exc}"
+                refused.append(str(exc))
+                assert time.monotonic() - killed < 5, f"still refused 5 s after the kill: {refused[-1]}"
+        assert all(a.views_used == views for a in answered)
+        print(f"{len(refused)} refused before the server answered again", flush=True)
+    finally:
+        print(output(run([*serve, "logs", "policy"], timeout=60, env=env), 30))
+        run([*serve, "down", "--remove-orphans"], timeout=120, env=env)
