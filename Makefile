@@ -25,7 +25,8 @@ lint: $(STAMP)
 test: install lint
 	MUJOCO_GL=$${MUJOCO_GL:-egl} $(BIN)/python -m pytest $(PYTEST_ARGS)
 
-# The checks that take minutes of training (marker `long`): the overfit test (about 5 min).
+# The checks that take minutes (marker `long`): the overfit test (about 5 min) and the compose
+# serve profile run for real (builds the 7 GB serving image with torch: about 2 min here).
 test-long: install
 	MUJOCO_GL=$${MUJOCO_GL:-egl} $(BIN)/python -m pytest -m long $(PYTEST_ARGS)
 
