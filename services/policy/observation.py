@@ -169,7 +169,8 @@ def parse(req: ActionRequest, spec: PolicySpec, default_views: list[str]) -> Par
     for v in views:
         cam = by_name.get(v)
         if cam is None:
-            sent = ", ".join(by_name) or "none"
+            # (names as sent, shortened and escaped: the request is the caller's)
+            sent = ", ".join(n[:40] for n in by_name)[:200].encode("ascii", "backslashreplace").decode() or "none"
             raise InvalidRequest(f"images[{v!r}]: missing (the request composes {', '.join(views)}; it sent {sent})")
         if len(cam.frames) != spec.To:
             raise InvalidRequest(f"images[{v!r}]: expected {spec.To} frames, got {len(cam.frames)}")
