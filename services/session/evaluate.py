@@ -24,7 +24,6 @@ first N episodes from one camera with the outcome marked.
 from __future__ import annotations
 
 import json
-import math
 import os
 import statistics
 import subprocess
@@ -38,6 +37,7 @@ from typing import Any
 from services.core.bus import Bus
 from services.core.runtime import child_env
 from services.core.stats import percentile, wilson
+from services.policy.aggregation import CompositionError, renormalise
 from services.policy.checkpoint import read_info, resolve_checkpoint
 from services.session.collect import CollectError, LocalStack
 from services.session.config import DEFAULT_MAX_TICKS, EVAL_SEEDS, SessionConfig
@@ -287,11 +287,11 @@ def _check_gamma(spec: EvalSpec, views: list[str]) -> None:
     unknown = [v for v in spec.gamma if v not in views]
     if unknown:
         raise EvalError(f"--gamma names {', '.join(unknown)}: not among the composed views {','.join(views)} (--views)")
-    bad = [v for v, g in spec.gamma.items() if not math.isfinite(g) or g < 0]
-    if bad:
-        raise EvalError(f"--gamma {bad[0]}={spec.gamma[bad[0]]}: a weight must be finite and non-negative")
-    if len(spec.gamma) == len(views) and sum(spec.gamma.values()) <= 0:
-        raise EvalError("--gamma: the weights sum to zero")
+    # the composition's own rules (a view left out keeps a positive default weight on the server)
+    try:
+        renormalise({v: spec.gamma.get(v, 1.0) for v in views}, views)
+    except CompositionError as exc:
+        raise EvalError(f"--gamma {','.join(f'{v}={g}' for v, g in spec.gamma.items())}: {exc}") from None
 
 
 def evaluate(spec: EvalSpec, out: Path, progress: Callable[[str], None] = print) -> EvalResult:
