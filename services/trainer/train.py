@@ -266,14 +266,16 @@ class EMA:
 
 
 def pick_device(spec: str, local_rank: int) -> torch.device:
+    """The device ``spec`` names (auto: CUDA if there is one; cuda: this process's local rank),
+    checked to exist here: a ConfigError naming what is wrong, not a traceback from torch."""
     if spec == "auto":
         spec = "cuda" if torch.cuda.is_available() else "cpu"
-    if spec.startswith("cuda"):
-        if not torch.cuda.is_available():
-            raise ConfigError(f"device={spec} but no CUDA device is available (use device=cpu or auto)")
-        if spec == "cuda":
-            spec = f"cuda:{local_rank}"
-    return torch.device(spec)
+    if spec == "cuda" and torch.cuda.is_available():
+        spec = f"cuda:{local_rank}"
+    try:
+        return ckpt.inference_device(spec)
+    except ValueError as exc:
+        raise ConfigError(str(exc)) from None
 
 
 def dist_env() -> tuple[int, int, int]:

@@ -4,6 +4,7 @@ EMA and LR schedules, and the optimiser state's round trip through safetensors +
 from __future__ import annotations
 
 import math
+import re
 
 import pytest
 import torch
@@ -13,7 +14,7 @@ from services.core.config import ConfigError
 from services.policy.checkpoint import config_diff, optimizer_from_tensors, optimizer_to_tensors
 from services.policy.model.policy import ModelConfig
 from services.trainer.config import EmaConfig, explicitly_set, load_train_config, train_config_from_dict
-from services.trainer.train import EMA, StepBatchSampler, lr_at, resolve_model_config
+from services.trainer.train import EMA, StepBatchSampler, lr_at, pick_device, resolve_model_config
 
 torch.set_num_threads(1)
 
@@ -44,6 +45,20 @@ def test_bad_config_is_a_clear_error():
         load_train_config(None, ["optim.lr=fast"], environ={})
     with pytest.raises(ConfigError, match="nonsense"):
         load_train_config(None, ["nonsense=1"], environ={})
+
+
+@pytest.mark.parametrize(
+    ("spec", "says"),
+    [("tpu", "'tpu': not a device name"), ("cuda:x", "'cuda:x': not a device name"), ("mkldnn", "cpu, cuda or mps")],
+)
+def test_a_device_torch_cannot_train_on_is_a_config_error(spec, says):
+    # before, `viewscale train --device tpu` was torch's RuntimeError traceback
+    with pytest.raises(ConfigError, match=re.escape(says)):
+        pick_device(spec, local_rank=0)
+    assert pick_device("auto", 0).type == ("cuda" if torch.cuda.is_available() else "cpu")
+    if not torch.cuda.is_available():
+        with pytest.raises(ConfigError, match="no CUDA device is visible"):
+            pick_device("cuda", 0)
 
 
 def test_dataset_fills_model_shapes_and_conflicts_are_errors():
