@@ -494,13 +494,20 @@ def train(
             keep=cfg.keep_checkpoints,
         )
 
+    if main and latest is not None and start >= cfg.steps:
+        log.warning(
+            "%s is already at step %d (steps=%d): nothing to train; raise --steps to go on", out, start, cfg.steps
+        )
     bar = None
-    if main and cfg.progress:
+    if main and cfg.progress and start < cfg.steps:
         from tqdm.auto import tqdm
 
         bar = tqdm(total=cfg.steps, initial=start, desc="train", unit="step", dynamic_ncols=True, smoothing=0.1)
 
-    result = TrainResult(step=start, checkpoint=latest, loss=None, val_loss=None, history=history)
+    # a resumed run's losses are its checkpoint's until this session logs others
+    last_loss = next((h["loss"] for h in reversed(history) if h.get("loss") is not None), None)
+    last_val = next((h["val_loss"] for h in reversed(history) if h.get("val_loss") is not None), None)
+    result = TrainResult(step=start, checkpoint=latest, loss=last_loss, val_loss=last_val, history=history)
     step = start
     t_start = time.perf_counter()
     wait = 0.0

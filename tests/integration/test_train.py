@@ -4,6 +4,7 @@ built into pseudo-demos (`viewscale dataset build`), trained with the tiny prese
 from __future__ import annotations
 
 import json
+import logging
 import os
 import threading
 from pathlib import Path
@@ -94,7 +95,7 @@ def test_checkpoint_holds_what_serving_needs(sim_dataset, tmp_path):
     ]
 
 
-def test_save_load_and_resume_continue_the_same_run(sim_dataset, tmp_path):
+def test_save_load_and_resume_continue_the_same_run(sim_dataset, tmp_path, caplog):
     base = tiny(sim_dataset, tmp_path / "straight", steps=6)
     straight = train(train_config_from_dict(base))
 
@@ -105,6 +106,12 @@ def test_save_load_and_resume_continue_the_same_run(sim_dataset, tmp_path):
     assert first.stopped and first.step == 3 and first.checkpoint.name == "step_0000003"
     second = train(cfg)
     assert second.step == 6 and not second.stopped
+    # Run again with nothing left: it says so, and reports the checkpoint's losses (before: None)
+    with caplog.at_level(logging.WARNING, logger="trainer"):
+        third = train(cfg)
+    assert third.step == 6 and third.checkpoint == second.checkpoint
+    assert (third.loss, third.val_loss) == (second.loss, second.val_loss) and third.loss is not None
+    assert "already at step 6 (steps=6): nothing to train" in caplog.text
 
     for name in ("model.safetensors", "train_state.safetensors"):  # EMA, raw weights, AdamW moments, RNG
         a, b = load_file(str(straight.checkpoint / name)), load_file(str(second.checkpoint / name))
