@@ -5,15 +5,47 @@
     torchrun --nproc_per_node=4 -m services.cli train --data data/ds --preset paper --out runs/paper
 
 Settings: preset < --config YAML < VIEWSCALE_<FIELD> env < the flags below < --set key=value.
-Running it again with the same --out resumes from the run's latest checkpoint.
+Running it again with the same --out resumes from the run's latest checkpoint. Ctrl-C (SIGINT, SIGTERM,
+SIGHUP; under torchrun, to any rank) stops every rank after the same step and saves it; a second one
+stops at once, back to the latest checkpoint.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
+import os
+import signal
 import sys
+import threading
 from pathlib import Path
+
+
+@contextlib.contextmanager
+def _stop_on_signals(stop: threading.Event, announce: bool):
+    """The first SIGINT, SIGTERM or SIGHUP sets ``stop``: training ends after the step in progress and
+    saves a checkpoint there. A second one interrupts at once (back to the latest checkpoint). Only
+    in the main thread, where Python handles signals; the previous handlers come back after."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def on_signal(signum, _frame):
+        if stop.is_set():
+            raise KeyboardInterrupt(signal.Signals(signum).name)
+        stop.set()
+        if announce:  # os.write: the progress bar may be writing to stderr at this moment
+            name = signal.Signals(signum).name
+            os.write(2, f"\n{name}: stopping after this step, saving a checkpoint (again to stop at once)\n".encode())
+
+    signals = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+    before = {sig: signal.signal(sig, on_signal) for sig in signals}
+    try:
+        yield
+    finally:
+        for sig, handler in before.items():
+            signal.signal(sig, handler)
 
 
 def _train(args: argparse.Namespace) -> int:
@@ -39,15 +71,25 @@ def _train(args: argparse.Namespace) -> int:
         overrides.append("resume=false")
     if args.no_progress:
         overrides.append("progress=false")
+    stop = threading.Event()
     try:
         cfg = load_train_config(args.config, [*overrides, *args.set])
         writable_dir(cfg.out, "--out")  # before the dataset is opened and the model built
-        result = train(cfg)
+        with _stop_on_signals(stop, announce=dist_env()[0] == 0):
+            result = train(cfg, stop=stop)
     except (ConfigError, TrainingError, CheckpointError, OutputError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print("interrupted: resume with the same command", file=sys.stderr)
+        print("interrupted: resume with the same command (from the run's latest checkpoint)", file=sys.stderr)
+        return 130
+    if result.stopped:
+        if dist_env()[0] == 0:
+            print(
+                f"stopped at step {result.step} of {cfg.steps}: checkpoint {result.checkpoint}; "
+                "run the same command to resume",
+                file=sys.stderr,
+            )
         return 130
     if dist_env()[0] != 0:
         return 0

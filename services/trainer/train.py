@@ -17,6 +17,7 @@ import json
 import logging
 import math
 import os
+import signal
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -278,6 +279,13 @@ def pick_device(spec: str, local_rank: int) -> torch.device:
         raise ConfigError(str(exc)) from None
 
 
+def _loader_ignores_ctrl_c(_worker_id: int) -> None:
+    """A data-loader worker leaves Ctrl-C to the training process (the terminal sends it to all of
+    them): it stops when the loader is shut down, so the step in progress still gets its batch and
+    the stop can save a checkpoint."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
 def dist_env() -> tuple[int, int, int]:
     """(rank, local_rank, world) as torchrun sets them; (0, 0, 1) otherwise."""
     return int(os.environ.get("RANK", 0)), int(os.environ.get("LOCAL_RANK", 0)), int(os.environ.get("WORLD_SIZE", 1))
@@ -451,6 +459,7 @@ def train(
         persistent_workers=cfg.num_workers > 0,
         # its own generator: creating the iterator must not draw from the training RNG stream
         generator=torch.Generator().manual_seed(cfg.seed + rank),
+        worker_init_fn=_loader_ignores_ctrl_c,
     )
 
     info_base = {
@@ -525,10 +534,11 @@ def train(
     result.channels_last = all(
         p.is_contiguous(memory_format=torch.channels_last) for p in policy.encoder.parameters() if p.dim() == 4
     )
+    saved_at = start  # the step of the newest checkpoint
     try:
         it = iter(loader)
         while step < cfg.steps:
-            if stop is not None and stop.is_set():
+            if not distributed and stop is not None and stop.is_set():
                 result.stopped = True
                 break
             t0 = time.perf_counter()
@@ -541,9 +551,15 @@ def train(
             with torch.autocast(device.type, dtype=torch.bfloat16, enabled=use_amp):
                 loss = net(batch)
             check = loss.detach().clone()
+            stopping = False
             if distributed:
-                dist.all_reduce(check)
-                check /= world
+                # The loss averaged over the ranks, and whether any rank was asked to stop: all of
+                # them stop after the same step (a rank stopping alone would leave the others waiting
+                # in the next step's all_reduce).
+                asked = float(stop is not None and stop.is_set())
+                both = torch.stack([check.float(), torch.tensor(asked, device=check.device)])
+                dist.all_reduce(both)
+                check, stopping = both[0] / world, bool(both[1] > 0)
             if not torch.isfinite(check):
                 raise TrainingError(
                     f"loss is {float(check)} at step {step}: training stopped; the last good checkpoint "
@@ -563,12 +579,14 @@ def train(
             if bar is not None:
                 bar.update(1)
 
+            if not distributed:  # (a stop set during this step: logged and saved at this step)
+                stopping = stop is not None and stop.is_set()
             last = step == cfg.steps
             # decided alike on every rank, so that all of them meet at the barrier below
             val_due = data.val is not None and bool((cfg.val_every and step % cfg.val_every == 0) or last)
             ckpt_due = bool((cfg.checkpoint_every and step % cfg.checkpoint_every == 0) or last)
             do_val = main and val_due
-            do_log = step % cfg.log_every == 0 or last or do_val
+            do_log = step % cfg.log_every == 0 or last or do_val or stopping
             if do_log and main:
                 now = time.perf_counter()
                 it_s = n_interval / max(1e-9, now - t_interval)
@@ -604,9 +622,13 @@ def train(
                 interval_losses, t_interval, n_interval = [], now, 0
             if main and ckpt_due:
                 result.checkpoint = save(step, result.loss, result.val_loss)
+                saved_at = step
             if distributed and (val_due or ckpt_due):
                 dist.barrier()
-        if result.stopped and main and step > start:
+            if stopping and not last:
+                result.stopped = True
+                break
+        if result.stopped and main and step > saved_at:
             result.checkpoint = save(step, result.loss, result.val_loss)
             plot_losses(history, out / "loss.png")
     finally:

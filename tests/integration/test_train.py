@@ -6,7 +6,11 @@ from __future__ import annotations
 import json
 import logging
 import os
+import signal
+import subprocess
+import sys
 import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -254,54 +258,31 @@ OVERFIT_LR = 1e-3
 OVERFIT_TOLERANCE = 0.2
 
 
-@pytest.mark.slow
-def test_torchrun_trains_with_two_processes(sim_dataset, tmp_path):
-    """DistributedDataParallel on the CPU (gloo): both ranks step together, rank 0 validates and writes."""
+def _torchrun(data: Path, out: Path, steps: int, *sets: str) -> list[str]:
+    """``viewscale train`` in two CPU processes (gloo) under torchrun, on a free port."""
     import shutil
     import socket
-    import subprocess
-    import sys
 
     torchrun = shutil.which("torchrun", path=str(Path(sys.executable).parent))
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
+    cmd = [torchrun, "--nproc_per_node", "2", "--master_addr", "127.0.0.1", "--master_port", str(port)]
+    cmd += ["-m", "services.cli", "train", "--data", str(data), "--steps", str(steps), "--out", str(out)]
+    cmd += ["--workers", "0", "--device", "cpu", "--no-progress", "--set", "batch_size=4"]
+    return cmd + [a for s in sets for a in ("--set", s)]
+
+
+REPO = Path(__file__).resolve().parents[2]
+ONE_THREAD = {**os.environ, "OMP_NUM_THREADS": "1"}
+
+
+@pytest.mark.slow
+def test_torchrun_trains_with_two_processes(sim_dataset, tmp_path):
+    """DistributedDataParallel on the CPU (gloo): both ranks step together, rank 0 validates and writes."""
     out = tmp_path / "ddp"
-    cmd = [
-        torchrun,
-        "--nproc_per_node",
-        "2",
-        "--master_addr",
-        "127.0.0.1",
-        "--master_port",
-        str(port),
-        "-m",
-        "services.cli",
-        "train",
-        "--data",
-        str(sim_dataset),
-        "--steps",
-        "4",
-        "--out",
-        str(out),
-        "--workers",
-        "0",
-        "--device",
-        "cpu",
-        "--no-progress",
-        "--set",
-        "batch_size=4",
-        "--set",
-        "val_every=2",
-    ]
-    proc = subprocess.run(
-        cmd,
-        capture_output=True,
-        text=True,
-        timeout=300,
-        cwd=Path(__file__).resolve().parents[2],
-        env={**os.environ, "OMP_NUM_THREADS": "1"},
-    )
+    cmd = _torchrun(sim_dataset, out, 4, "val_every=2")
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300, cwd=REPO, env=ONE_THREAD)
     assert proc.returncode == 0, proc.stderr[-3000:]
     state = json.loads((out / "checkpoints" / "step_0000004" / "train_state.json").read_text())
     assert state["world"] == 2
@@ -309,6 +290,92 @@ def test_torchrun_trains_with_two_processes(sim_dataset, tmp_path):
     assert [r["step"] for r in rows] == [2, 4] and all("val_loss" in r for r in rows)
     assert rows[-1]["samples_s"] == pytest.approx(rows[-1]["it_s"] * 8, rel=0.01)  # 2 ranks x batch 4
     assert load_policy(out).info["step"] == 4
+
+
+def _wait_for_log(out: Path, proc: subprocess.Popen, timeout: float = 120) -> None:
+    log = out / "log.jsonl"
+    end = time.monotonic() + timeout
+    while not (log.is_file() and log.stat().st_size > 0):
+        assert proc.poll() is None, proc.communicate()[0][-3000:]
+        assert time.monotonic() < end, "training logged no step"
+        time.sleep(0.1)
+
+
+def test_ctrl_c_stops_after_the_step_and_saves_it(sim_dataset, tmp_path):
+    """Ctrl-C in a terminal reaches the trainer and its data-loader workers alike (the process
+    group): training ends after the step in progress with a checkpoint there, and the same command
+    resumes from it. Before, the run ended with no checkpoint since the last one (up to 499 steps)."""
+    out = tmp_path / "run"
+    cmd = [sys.executable, "-m", "services.cli", "train", "--data", str(sim_dataset), "--out", str(out)]
+    cmd += ["--workers", "2", "--no-progress", "--set", "checkpoint_every=100000", "--set", "batch_size=8"]
+    # a process group of its own, as a terminal's foreground job
+    proc = subprocess.Popen(
+        [*cmd, "--steps", "100000"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        cwd=REPO,
+        env=ONE_THREAD,
+        start_new_session=True,
+    )
+    try:
+        _wait_for_log(out, proc)
+        os.killpg(proc.pid, signal.SIGINT)
+        said = proc.communicate(timeout=60)[0]
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.returncode == 130, said[-3000:]
+    saved = sorted(p.name for p in (out / "checkpoints").glob("step_*"))
+    assert len(saved) == 1, saved
+    step = int(saved[0].removeprefix("step_"))
+    assert step >= 1
+    assert "SIGINT: stopping after this step, saving a checkpoint" in said
+    assert f"stopped at step {step} of 100000: checkpoint {out / 'checkpoints' / saved[0]}" in said
+    assert "Traceback" not in said and "exited unexpectedly" not in said, said[-3000:]
+    rows = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
+    assert rows[-1]["step"] == step  # the stopped step is logged, as the checkpoint's loss
+
+    # the same command, with a step more to go, resumes from it
+    again = subprocess.run(
+        [*cmd, "--steps", str(step + 1)], capture_output=True, text=True, timeout=120, cwd=REPO, env=ONE_THREAD
+    )
+    assert again.returncode == 0, again.stderr[-3000:]
+    assert f"to step {step + 1}" in again.stdout
+    assert [r["step"] for r in map(json.loads, (out / "log.jsonl").read_text().splitlines())][-2:] == [step, step + 1]
+
+
+@pytest.mark.slow
+def test_a_signal_to_one_rank_stops_all_of_them_at_one_step(sim_dataset, tmp_path):
+    """SIGTERM to rank 1 only (a scheduler preempting one process): both ranks stop after the same
+    step, and rank 0 saves it; a rank stopping alone would leave the other in its next all_reduce."""
+    out = tmp_path / "ddp"
+    proc = subprocess.Popen(
+        _torchrun(sim_dataset, out, 100000, "log_every=1", "checkpoint_every=100000"),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        cwd=REPO,
+        env=ONE_THREAD,
+        start_new_session=True,
+    )
+    try:
+        _wait_for_log(out, proc)
+        ranks = subprocess.run(["pgrep", "-P", str(proc.pid)], capture_output=True, text=True).stdout.split()
+        rank1 = [p for p in ranks if b"\0LOCAL_RANK=1\0" in b"\0" + Path(f"/proc/{p}/environ").read_bytes()]
+        assert len(rank1) == 1, ranks
+        os.kill(int(rank1[0]), signal.SIGTERM)
+        said = proc.communicate(timeout=90)[0]
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    saved = sorted((out / "checkpoints").glob("step_*"))
+    assert len(saved) == 1, said[-3000:]
+    step = int(saved[0].name.removeprefix("step_"))
+    assert json.loads((saved[0] / "train_state.json").read_text())["world"] == 2
+    # complete before any rank ended: the others wait for rank 0's save (torchrun then ends them all)
+    assert load_policy(out).info["step"] == step
+    assert "exitcode  : 130" in said, said[-3000:]  # a rank ended as stopped, not killed by the signal
 
 
 def test_dinov3_lora_policy_trains_and_reloads_without_the_pretrained_file(sim_dataset, tmp_path):
