@@ -40,8 +40,7 @@ def _collect(args: argparse.Namespace) -> int:
             raise ConfigError(f"--hz must be positive, got {args.hz}")
         if args.max_ticks is not None and args.max_ticks < 1:
             raise ConfigError(f"--max-ticks must be at least 1, got {args.max_ticks}")
-        if args.size is not None and not 16 <= args.size <= 4096:
-            raise ConfigError(f"--size must be 16..4096 px, got {args.size}")
+        _check_size(args.size)
         last_seed = args.seed + 3 * args.episodes  # failed attempts move on to the next seed
         if args.seed < 0 or last_seed >= EVAL_SEED_FLOOR:
             raise ConfigError(
@@ -149,13 +148,28 @@ def _eval(args: argparse.Namespace) -> int:
     return 0
 
 
+def _check_size(size: int | None) -> None:
+    """--size of collect and rerender: square frames the renderer and the dataset take."""
+    from services.core.config import ConfigError
+
+    if size is not None and not 16 <= size <= 4096:
+        raise ConfigError(f"--size must be 16..4096 px, got {size}")
+
+
 def _rerender(args: argparse.Namespace) -> int:
     os.environ.setdefault("MUJOCO_GL", "egl")
     from services.core.config import ConfigError
+    from services.core.runtime import OutputError, writable_dir
     from services.dataset.store import DatasetError
     from sim.rerender import rerender
 
     try:
+        _check_size(args.size)
+        out = Path(args.out)
+        if any(Path(p).is_dir() and Path(p).resolve() == out.resolve() for p in args.raw):
+            # its episodes would be read back as recordings: the next run re-renders the re-renders
+            raise ConfigError(f"--out {out} is a --raw folder: write the re-rendered episodes to another one")
+        writable_dir(out, "--out")
         result = rerender(
             [Path(p) for p in args.raw],
             args.rig,
@@ -163,7 +177,7 @@ def _rerender(args: argparse.Namespace) -> int:
             args.size,
             progress=lambda m: print(m, file=sys.stderr, flush=True),
         )
-    except (ConfigError, DatasetError, OSError) as exc:
+    except (ConfigError, DatasetError, OutputError, OSError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     done = result.written

@@ -150,3 +150,23 @@ def test_rerendered_episodes_read_and_build_like_collected_ones(sim_dataset, tmp
         assert a.shape == b.shape and np.abs(a - b).mean() > 5
     build_dataset(out, tmp_path / "ds", BuildParams(views=("F", "FL30", "FR30"), image_size=(32, 32)))
     assert DatasetStore(tmp_path / "ds").summary["pseudo_demos"] == 6
+
+
+def test_rerender_refuses_bad_arguments_before_writing_anything(sim_dataset, tmp_path, capsys):
+    from services.cli import main
+
+    raw = sim_dataset.parent / "raw"
+    before = sorted(p.name for p in raw.iterdir())
+    (tmp_path / "a-file").write_text("")
+    cases = [
+        # its output in the --raw folder: before, a second run re-rendered the re-renders (-three30-three30)
+        (["--out", str(raw)], f"--out {raw} is a --raw folder"),
+        (["--out", str(raw) + "/"], "is a --raw folder"),
+        (["--out", str(tmp_path / "rr"), "--size", "0"], "--size must be 16..4096 px, got 0"),  # was a traceback
+        (["--out", str(tmp_path / "a-file")], f"--out {tmp_path / 'a-file'}: File exists"),
+    ]
+    for extra, says in cases:
+        assert main(["rerender", "--raw", str(raw), "--rig", "three30", *extra]) == 2, extra
+        err = capsys.readouterr().err
+        assert says in err and "Traceback" not in err, (extra, err)
+    assert sorted(p.name for p in raw.iterdir()) == before and not (tmp_path / "rr").exists()
