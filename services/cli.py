@@ -191,6 +191,7 @@ def _rerender(args: argparse.Namespace) -> int:
 def _experiment(args: argparse.Namespace) -> int:
     os.environ.setdefault("MUJOCO_GL", "egl")
     from services.core.config import ConfigError
+    from services.core.runtime import OutputError, writable_dir
     from services.experiment.runner import ExperimentError, Runner
 
     try:
@@ -206,10 +207,11 @@ def _experiment(args: argparse.Namespace) -> int:
         runner = Runner(
             args.question, args.task, args.scale, Path(args.root), progress=say, only=args.only, seeds=seeds
         )
+        writable_dir(args.root, "--root")  # (its cache and the tables go there)
         for sig in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):
             signal.signal(sig, _interrupt)
         runner.run(table_only=args.table_only)
-    except (ConfigError, ExperimentError) as exc:
+    except (ConfigError, ExperimentError, OutputError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt as exc:

@@ -96,9 +96,12 @@ def test_an_unknown_question_or_scale_is_one_line(tmp_path):
         (["q1", "--scale", "huge"], "unknown scale 'huge'"),
         (["q1", "--only", "views=F"], "expected AXIS=VALUE with AXIS one of train, space, N"),
         (["q1", "--only", "N=7"], "this question's N values are 10, 25, 50"),
+        # a file for --root: before, a NotADirectoryError traceback once the first stage started
+        (["q1", "--scale", "smoke", "--root", str(tmp_path / "a-file")], f"--root {tmp_path / 'a-file'}: File exists"),
     ]:
+        (tmp_path / "a-file").write_text("")
         proc = subprocess.run(
-            [sys.executable, "-m", "services.cli", "experiment", *args, "--root", str(tmp_path)],
+            [sys.executable, "-m", "services.cli", "experiment", "--root", str(tmp_path), *args],
             cwd=ROOT,
             capture_output=True,
             text=True,
