@@ -117,15 +117,29 @@ def _err(msg: str) -> int:
     return 2
 
 
+MAX_BOARD_PX = 20000  # a side of the printable board image
+
+
 def _print_board(args: argparse.Namespace) -> int:
     try:
         board = _board(args)
         if args.px_per_square < 20:
             raise CalibrationError(f"--px-per-square must be at least 20, got {args.px_per_square}")
-        img = board.image(args.px_per_square)
+        margin = 2 * (args.px_per_square // 2)  # board.image's margins
+        w, h = board.squares_x * args.px_per_square + margin, board.squares_y * args.px_per_square + margin
+        if max(w, h) > MAX_BOARD_PX:  # (before, OpenCV's out-of-memory traceback)
+            raise CalibrationError(
+                f"the board would be {w}x{h} px; at most {MAX_BOARD_PX} px a side (lower --px-per-square: "
+                "200 px per 40 mm square is 127 dpi, 472 is 300 dpi)"
+            )
         out = Path(args.out)
         if out.suffix.lower() not in (".png", ".bmp", ".tif", ".tiff"):
             raise CalibrationError(f"--out {out}: write the board losslessly (.png), not {out.suffix or 'no suffix'}")
+        try:
+            out.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise CalibrationError(f"--out {out}: {exc.strerror or exc}") from None
+        img = board.image(args.px_per_square)
         if not cv2.imwrite(str(out), img):
             raise CalibrationError(f"cannot write {out}")
     except CalibrationError as exc:

@@ -313,6 +313,13 @@ def test_board_image_is_written(tmp_path, capsys):
     img = cv2.imread(str(tmp_path / "b.png"), cv2.IMREAD_GRAYSCALE)
     assert img.shape == (5 * 50 + 50, 7 * 50 + 50)
     assert "280 x 200 mm" in capsys.readouterr().out
+    # into a folder not made yet (before: 'cannot write'); too large a board is refused before OpenCV
+    # tries to allocate it (before: its out-of-memory traceback)
+    assert viewscale(["calibrate", "board", "--out", str(tmp_path / "new" / "b.png"), "--px-per-square", "20"]) == 0
+    assert (tmp_path / "new" / "b.png").is_file()
+    assert viewscale(["calibrate", "board", "--out", str(tmp_path / "huge.png"), "--px-per-square", "100000"]) == 2
+    assert "the board would be 800000x600000 px; at most 20000" in capsys.readouterr().err
+    assert not (tmp_path / "huge.png").exists()
 
 
 # -- camera-space dataset builds refuse a missing or stale calibration ------------------------------
