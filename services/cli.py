@@ -286,6 +286,7 @@ def _credentials(args: argparse.Namespace) -> int:
 
 
 def _check(args: argparse.Namespace) -> int:
+    os.environ.setdefault("MUJOCO_GL", "egl")  # a sim rig renders headless, as the camera service does
     from services.core.config import ConfigError
     from services.session.check import run_check
 
@@ -296,6 +297,9 @@ def _check(args: argparse.Namespace) -> int:
             print(f"error: --set {item!r} must look like SERVICE.KEY=VALUE (camera. or robot.)", file=sys.stderr)
             return 2
         overrides.setdefault(service, []).append(rest)
+    if not args.seconds > 0:
+        print(f"error: --seconds must be positive, got {args.seconds:g}", file=sys.stderr)
+        return 2
     parts = [p.strip() for p in args.only.split(",")] if args.only else ["cameras", "calibration", "robot"]
     unknown = sorted(set(parts) - {"cameras", "calibration", "robot"})
     if unknown:

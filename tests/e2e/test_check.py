@@ -5,6 +5,7 @@ finding and a non-zero exit when anything fails. The sim drivers stand in for ha
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -18,8 +19,16 @@ ROOT = Path(__file__).resolve().parents[2]
 
 
 def viewscale(*args: str, timeout: float = 300) -> subprocess.CompletedProcess:
+    # as a user's shell runs it: without the MUJOCO_GL that `make test` sets (the command sets its own;
+    # before, a sim rig's cameras failed with 'an OpenGL platform library has not been loaded')
+    env = {k: v for k, v in os.environ.items() if k != "MUJOCO_GL"}
     return subprocess.run(
-        [sys.executable, "-m", "services.cli", *args], cwd=ROOT, capture_output=True, text=True, timeout=timeout
+        [sys.executable, "-m", "services.cli", *args],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        env=env,
     )
 
 
@@ -75,6 +84,9 @@ def test_bad_arguments_are_one_error_line(tmp_path):
     proc = viewscale("check", "--config", str(sim_config(tmp_path)), "--only", "cameras,wheels")
     assert proc.returncode == 2
     assert proc.stderr.strip().splitlines() == ["error: --only wheels: choose from cameras, calibration, robot"]
+    proc = viewscale("check", "--config", str(sim_config(tmp_path)), "--seconds", "0")  # was 7 FAIL lines
+    assert proc.returncode == 2
+    assert proc.stderr.strip().splitlines() == ["error: --seconds must be positive, got 0"]
     proc = viewscale("check", "--config", str(tmp_path / "missing.yaml"))
     assert proc.returncode == 2
     assert proc.stderr.strip().startswith("error: config file") and "Traceback" not in proc.stderr
