@@ -107,14 +107,22 @@ def default_gammas(views: Sequence[str]) -> dict[str, float]:
     return {v: 1.0 / len(views) for v in views}
 
 
+def checked_weights(weights: Mapping[str, float], views: Sequence[str]) -> dict[str, float]:
+    """The weights of ``views`` as floats; CompositionError naming the first that is not finite and
+    non-negative (the rule of every composition: the server's, a request's, eval's --gamma)."""
+    w = {v: float(weights[v]) for v in views}
+    for v, x in w.items():
+        if not np.isfinite(x) or x < 0:
+            raise CompositionError(f"the weight of {v} must be finite and non-negative, got {x}")
+    return w
+
+
 def renormalise(gammas: Mapping[str, float], views: Sequence[str]) -> dict[str, float]:
     """The weights of ``views`` only, scaled to sum to one (a view dropped mid-request)."""
     missing = [v for v in views if v not in gammas]
     if missing:
         raise CompositionError(f"no weight for view(s) {', '.join(missing)}")
-    w = {v: float(gammas[v]) for v in views}
-    if any(not np.isfinite(x) or x < 0 for x in w.values()):
-        raise CompositionError(f"weights must be finite and non-negative, got {w}")
+    w = checked_weights(gammas, views)
     total = sum(w.values())
     if total <= 0:
         raise CompositionError(f"the weights of {', '.join(views)} sum to zero")
@@ -209,9 +217,8 @@ def compose_with_unconditional(
     views = [v for v in order if v in eps]
     if not views:
         raise CompositionError("no view predictions to compose")
-    if any(not np.isfinite(float(weights[v])) or float(weights[v]) < 0 for v in views):
-        raise CompositionError(f"weights must be finite and non-negative, got {dict(weights)}")
+    w = checked_weights(weights, views)
     out = eps_uncond[views[0]]
     for v in views:
-        out = out + from_view(eps[v] - eps_uncond[v], G[v]) * float(weights[v])
+        out = out + from_view(eps[v] - eps_uncond[v], G[v]) * w[v]
     return out

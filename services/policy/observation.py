@@ -23,6 +23,7 @@ from services.core.geometry import quat_wxyz_to_matrix
 from services.core.normalizer import Normalizer
 from services.core.tensors import FrameSizeError, decode_resized, from_tensor
 from services.pb.policy_pb2 import ActionRequest
+from services.policy.aggregation import CompositionError, renormalise
 
 MAX_SESSION_ID = 128
 MAX_JPEG_BYTES = 8 << 20  # one frame
@@ -218,12 +219,10 @@ def parse(req: ActionRequest, spec: PolicySpec, default_views: list[str]) -> Par
     if unknown:
         raise InvalidRequest(f"gamma[{unknown[0]!r}]: not one of the composed views ({', '.join(views)})")
     gamma = {v: float(req.gamma.get(v, spec.gammas.get(v, 1.0))) if req.gamma else 1.0 for v in views}
-    bad = [v for v, g in gamma.items() if not math.isfinite(g) or g < 0]
-    if bad:
-        raise InvalidRequest(f"gamma[{bad[0]!r}]: must be finite and non-negative, got {gamma[bad[0]]}")
-    total = sum(gamma.values())
-    if total <= 0:
-        raise InvalidRequest(f"gamma: the weights of {', '.join(views)} sum to zero")
+    try:
+        gamma = renormalise(gamma, views)  # the composition's rules: finite, non-negative, not all zero
+    except CompositionError as exc:
+        raise InvalidRequest(f"gamma: {exc}") from None
     if req.unconditional and not spec.unconditional:
         raise InvalidRequest("unconditional: this checkpoint was trained without condition dropout")
     return Parsed(
@@ -235,7 +234,7 @@ def parse(req: ActionRequest, spec: PolicySpec, default_views: list[str]) -> Par
         np.stack(quat),
         np.asarray(grip),
         int(stamps[-1]),
-        {v: g / total for v, g in gamma.items()},
+        gamma,
         int(req.seed) if req.HasField("seed") else None,
         bool(req.unconditional),
     )

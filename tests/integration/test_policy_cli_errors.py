@@ -186,7 +186,7 @@ def test_a_tls_file_that_is_not_there_is_a_config_error(tiny_checkpoint):
     [
         (
             ["--views", "F,FL", "--gamma", "F=-1,FL=2"],
-            "--gamma F=-1.0,FL=2.0: weights must be finite and non-negative, got {'F': -1.0, 'FL': 2.0}",
+            "--gamma F=-1.0,FL=2.0: the weight of F must be finite and non-negative, got -1.0",
         ),
         (["--gamma", "F=x"], "--gamma must look like F=0.5,FL=0.25, got 'F=x'"),
     ],
@@ -207,7 +207,7 @@ def test_eval_checks_weights_as_the_server_does():
     for gamma, views, says in [
         ({"F": 0.5, "XX": 0.5}, ["F"], "--gamma names XX: not among the composed views F (--views)"),
         ({"F": 0.0, "FL": 0.0}, ["F", "FL"], "--gamma F=0.0,FL=0.0: the weights of F, FL sum to zero"),
-        ({"F": float("nan")}, ["F"], "--gamma F=nan: weights must be finite and non-negative, got {'F': nan}"),
+        ({"F": float("nan")}, ["F"], "--gamma F=nan: the weight of F must be finite and non-negative, got nan"),
     ]:
         with pytest.raises(EvalError, match=re.escape(says)):
             _check_gamma(EvalSpec(task="lift", gamma=gamma), views)

@@ -497,7 +497,7 @@ def test_malformed_requests_are_refused_with_the_field_and_the_server_stays_up(c
                 return req, "expected shape"
             if kind == 8:
                 req.gamma["F"] = -1.0
-                return req, "gamma['F']"
+                return req, "gamma: the weight of F must be finite and non-negative, got -1.0"
             if kind == 9:
                 req.session_id = ""
                 return req, "session_id"

@@ -147,6 +147,14 @@ def test_a_dropped_view_renormalises_the_rest():
         renormalise({"F": 0.0, "FL": 1.0}, ["F"])
     with pytest.raises(CompositionError, match="no weight"):
         renormalise({"F": 1.0}, ["F", "FL"])
+    # one rule for the server, a request's gamma and eval's --gamma, naming the view
+    for bad in (-0.5, float("nan"), float("inf")):
+        with pytest.raises(CompositionError, match=f"^the weight of FL must be finite and non-negative, got {bad}$"):
+            renormalise({"F": 1.0, "FL": bad}, ["F", "FL"])
+        with pytest.raises(CompositionError, match="the weight of FL must be finite"):
+            compose_with_unconditional(
+                {v: np.ones((2, 7)) for v in ("F", "FL")}, {}, {}, {"F": 1.0, "FL": bad}, ["F", "FL"]
+            )
     e = {"F": np.ones((2, 7)), "FR": 3 * np.ones((2, 7))}
     G = {v: np.eye(7) for v in e}
     assert np.allclose(compose(e, G, {"F": 0.5, "FL": 0.3, "FR": 0.2}, ["F", "FL", "FR"]), 1 * 5 / 7 + 3 * 2 / 7)
