@@ -30,6 +30,7 @@ import importlib.metadata as md
 import itertools
 import json
 import shutil
+import signal
 import subprocess
 import sys
 import time
@@ -105,14 +106,40 @@ class Stage:
 
 
 def viewscale(args: list[str], log: Path) -> None:
-    """One ``viewscale`` command as a process (as a user would run it); its output goes to ``log``."""
+    """One ``viewscale`` command as a process (as a user would run it); its output goes to ``log``.
+
+    An interrupt of this run (Ctrl-C, SIGTERM: a KeyboardInterrupt here) is passed on to the command
+    as one SIGINT, and its end awaited before the interrupt goes on: the command stops in its own way
+    (a training run saves a checkpoint at its step, a collection keeps the episode it was in). The
+    command has a session of its own, so a terminal's Ctrl-C reaches it only this way, once; a
+    second interrupt is passed on too (it stops at once), a third kills it."""
     log.parent.mkdir(parents=True, exist_ok=True)
     with open(log, "a") as f:
         f.write(f"$ viewscale {' '.join(args)}\n")
         f.flush()
-        rc = subprocess.run(
-            [sys.executable, "-m", "services.cli", *args], cwd=ROOT, stdout=f, stderr=f, env=child_env()
-        ).returncode
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "services.cli", *args],
+            cwd=ROOT,
+            stdout=f,
+            stderr=f,
+            env=child_env(),
+            start_new_session=True,
+        )
+        interrupted: KeyboardInterrupt | None = None
+        passed_on = 0
+        while True:
+            try:
+                rc = proc.wait()
+                break
+            except KeyboardInterrupt as exc:
+                interrupted = interrupted or exc
+                if passed_on == 2:
+                    proc.kill()
+                    continue
+                proc.send_signal(signal.SIGINT)
+                passed_on += 1
+        if interrupted is not None:
+            raise interrupted
     if rc != 0:
         tail = "\n".join(log.read_text(errors="replace").splitlines()[-12:])
         raise ExperimentError(f"viewscale {args[0]} failed (exit {rc}); the end of {log}:\n{tail}")
