@@ -5,31 +5,15 @@ finding and a non-zero exit when anything fails. The sim drivers stand in for ha
 
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import yaml
+from cli_process import viewscale
 
 from services.camera.config import CameraConfig
 from services.session.check import CameraReport, camera_findings
 
 ROOT = Path(__file__).resolve().parents[2]
-
-
-def viewscale(*args: str, timeout: float = 300) -> subprocess.CompletedProcess:
-    # as a user's shell runs it: without the MUJOCO_GL that `make test` sets (the command sets its own;
-    # before, a sim rig's cameras failed with 'an OpenGL platform library has not been loaded')
-    env = {k: v for k, v in os.environ.items() if k != "MUJOCO_GL"}
-    return subprocess.run(
-        [sys.executable, "-m", "services.cli", *args],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=timeout,
-        env=env,
-    )
 
 
 def sim_config(tmp_path: Path, **camera) -> Path:

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from cli_process import user_env
 
 from services.core.rig import Camera, load_rig
 from services.recorder.reader import read_episode
@@ -19,7 +20,7 @@ ROOT = Path(__file__).resolve().parents[2]
 
 def run_collect(out: Path, *args: str, timeout: float = 600) -> subprocess.CompletedProcess:
     cmd = [sys.executable, "-m", "services.cli", "collect", "--out", str(out), *args]
-    return subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=timeout)
+    return subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=timeout, env=user_env())
 
 
 @pytest.fixture(scope="module")

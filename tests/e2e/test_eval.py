@@ -10,6 +10,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+from cli_process import viewscale
 
 from services.core.tensors import decode_jpeg
 from services.dataset.build import BuildParams, build_dataset
@@ -18,12 +19,6 @@ from services.recorder.reader import read_episode
 from services.session.config import EVAL_SEEDS
 
 ROOT = Path(__file__).resolve().parents[2]
-
-
-def viewscale(*args: str, timeout: float = 600) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-m", "services.cli", *args], cwd=ROOT, capture_output=True, text=True, timeout=timeout
-    )
 
 
 def test_eval_drives_the_sim_through_the_policy_server_and_records_every_rollout(tiny_checkpoint, tmp_path):

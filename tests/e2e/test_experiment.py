@@ -10,6 +10,8 @@ import sys
 import time
 from pathlib import Path
 
+from cli_process import user_env
+
 from services.core.runtime import host_description
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -34,7 +36,9 @@ def experiment(root: Path, *extra: str) -> list[str]:
 
 def test_a_question_runs_caches_its_stages_and_resumes_after_a_kill(tmp_path):
     root = tmp_path / "exp"
-    proc = subprocess.Popen(experiment(root), cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(
+        experiment(root), cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=user_env()
+    )
     seen = []
     for line in proc.stdout:  # kill it in the middle of its first evaluation
         seen.append(line)

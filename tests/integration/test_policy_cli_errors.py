@@ -9,12 +9,11 @@ import json
 import re
 import shutil
 import socket
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 import torch
+from cli_process import viewscale
 from policy_processes import start_server, start_worker, stop
 
 from services.core.bus import free_tcp_port
@@ -22,12 +21,6 @@ from services.policy.checkpoint import MODEL_FILE, CheckpointError, inference_de
 
 ROOT = Path(__file__).resolve().parents[2]
 NO_CUDA = not torch.cuda.is_available()
-
-
-def viewscale(*args: str, timeout: float = 120) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-m", "services.cli", *args], cwd=ROOT, capture_output=True, text=True, timeout=timeout
-    )
 
 
 def no_traceback(stderr: str) -> None:

@@ -49,7 +49,11 @@ def test_bad_config_is_a_clear_error():
 
 @pytest.mark.parametrize(
     ("spec", "says"),
-    [("tpu", "'tpu': not a device name"), ("cuda:x", "'cuda:x': not a device name"), ("mkldnn", "cpu, cuda or mps")],
+    [
+        ("tpu", "'tpu': not a device name"),
+        ("cuda:x", "'cuda:x': not a device name"),
+        ("meta", "a policy runs on cpu, cuda or mps"),
+    ],
 )
 def test_a_device_torch_cannot_train_on_is_a_config_error(spec, says):
     # before, `viewscale train --device tpu` was torch's RuntimeError traceback

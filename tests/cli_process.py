@@ -1,0 +1,30 @@
+"""``viewscale`` run as a process, as a user's shell runs it (importable from every test folder:
+tests/ holds the conftest)."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def user_env(**extra: str) -> dict[str, str]:
+    """This environment without what `make test` adds for the suite (MUJOCO_GL): each command that
+    renders sets its own default, and a test that leaned on the suite's would hide a command that
+    does not (it hid `viewscale check`'s)."""
+    env = {k: v for k, v in os.environ.items() if k != "MUJOCO_GL"}
+    return {**env, **extra}
+
+
+def viewscale(*args: str, timeout: float = 600) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "services.cli", *args],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        env=user_env(),
+    )
