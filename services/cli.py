@@ -498,7 +498,11 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     logging.basicConfig(level=getattr(logging, args.log_level), format=LOG_FORMAT)
-    return int(args.func(args) or 0)
+    try:
+        return int(args.func(args) or 0)
+    except KeyboardInterrupt:  # before a command's own handling (while torch imports): no traceback
+        print(f"viewscale {args.command}: interrupted", file=sys.stderr)
+        return 130
 
 
 if __name__ == "__main__":

@@ -84,7 +84,9 @@ def _train(args: argparse.Namespace) -> int:
         print("interrupted: resume with the same command (from the run's latest checkpoint)", file=sys.stderr)
         return 130
     if result.stopped:
-        if dist_env()[0] == 0:
+        if dist_env()[0] == 0 and result.checkpoint is None:
+            print("stopped before the first step: nothing to save", file=sys.stderr)
+        elif dist_env()[0] == 0:
             print(
                 f"stopped at step {result.step} of {cfg.steps}: checkpoint {result.checkpoint}; "
                 "run the same command to resume",
