@@ -3,6 +3,7 @@ built into pseudo-demos (`viewscale dataset build`), trained with the tiny prese
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
@@ -292,6 +293,26 @@ def test_torchrun_trains_with_two_processes(sim_dataset, tmp_path):
     assert load_policy(out).info["step"] == 4
 
 
+@contextlib.contextmanager
+def _process_group(cmd: list[str]):
+    """``cmd`` in a process group of its own (as a terminal's foreground job), output on stdout;
+    the group is killed on the way out if it is still there."""
+    proc = subprocess.Popen(
+        cmd,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        cwd=REPO,
+        env=ONE_THREAD,
+        start_new_session=True,
+    )
+    try:
+        yield proc
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+
+
 def _wait_for_log(out: Path, proc: subprocess.Popen, timeout: float = 120) -> None:
     log = out / "log.jsonl"
     end = time.monotonic() + timeout
@@ -308,23 +329,10 @@ def test_ctrl_c_stops_after_the_step_and_saves_it(sim_dataset, tmp_path):
     out = tmp_path / "run"
     cmd = [sys.executable, "-m", "services.cli", "train", "--data", str(sim_dataset), "--out", str(out)]
     cmd += ["--workers", "2", "--no-progress", "--set", "checkpoint_every=100000", "--set", "batch_size=8"]
-    # a process group of its own, as a terminal's foreground job
-    proc = subprocess.Popen(
-        [*cmd, "--steps", "100000"],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-        cwd=REPO,
-        env=ONE_THREAD,
-        start_new_session=True,
-    )
-    try:
+    with _process_group([*cmd, "--steps", "100000"]) as proc:
         _wait_for_log(out, proc)
         os.killpg(proc.pid, signal.SIGINT)
         said = proc.communicate(timeout=60)[0]
-    finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
     assert proc.returncode == 130, said[-3000:]
     saved = sorted(p.name for p in (out / "checkpoints").glob("step_*"))
     assert len(saved) == 1, saved
@@ -350,25 +358,13 @@ def test_a_signal_to_one_rank_stops_all_of_them_at_one_step(sim_dataset, tmp_pat
     """SIGTERM to rank 1 only (a scheduler preempting one process): both ranks stop after the same
     step, and rank 0 saves it; a rank stopping alone would leave the other in its next all_reduce."""
     out = tmp_path / "ddp"
-    proc = subprocess.Popen(
-        _torchrun(sim_dataset, out, 100000, "log_every=1", "checkpoint_every=100000"),
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-        cwd=REPO,
-        env=ONE_THREAD,
-        start_new_session=True,
-    )
-    try:
+    with _process_group(_torchrun(sim_dataset, out, 100000, "log_every=1", "checkpoint_every=100000")) as proc:
         _wait_for_log(out, proc)
         ranks = subprocess.run(["pgrep", "-P", str(proc.pid)], capture_output=True, text=True).stdout.split()
         rank1 = [p for p in ranks if b"\0LOCAL_RANK=1\0" in b"\0" + Path(f"/proc/{p}/environ").read_bytes()]
         assert len(rank1) == 1, ranks
         os.kill(int(rank1[0]), signal.SIGTERM)
         said = proc.communicate(timeout=90)[0]
-    finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
     saved = sorted((out / "checkpoints").glob("step_*"))
     assert len(saved) == 1, said[-3000:]
     step = int(saved[0].name.removeprefix("step_"))
