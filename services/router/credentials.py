@@ -46,13 +46,18 @@ def write_credentials(out: Path, users: Iterable[str] = SERVICE_USERS, force: bo
             raise ValueError(f"user name {user!r}: must be non-empty, without ':', '/' or surrounding spaces")
     if not users:
         raise ValueError("no users to write credentials for")
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {out}: not a directory (the credentials are a folder of files)")
     existing = [p for p in [out / USERS_FILE, *(password_path(out, u) for u in users)] if p.exists()]
     if existing and not force:
         raise FileExistsError(
             f"{existing[0]} exists: credentials are already there (--force replaces every password; "
             "then restart the router and every service)"
         )
-    out.mkdir(parents=True, exist_ok=True)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ValueError(f"--out {out}: {exc.strerror or exc}") from None
     os.chmod(out, 0o700)
     passwords = {user: secrets.token_urlsafe(24) for user in users}  # 192 random bits, [A-Za-z0-9_-]
     written = []

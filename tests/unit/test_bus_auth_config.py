@@ -121,3 +121,13 @@ def test_credentials_are_owner_only_and_never_printed(tmp_path, capsys):
     assert "exists" in capsys.readouterr().err
     assert viewscale(["credentials", "--out", str(out), "--force"]) == 0
     assert (out / USERS_FILE).read_text().splitlines() != lines
+
+
+def test_credentials_into_a_file_or_under_one_is_one_clear_error_and_changes_nothing(tmp_path, capsys):
+    note = tmp_path / "notes.txt"
+    note.write_text("keep me\n")
+    assert viewscale(["credentials", "--out", str(note)]) == 2
+    assert f"--out {note}: not a directory" in capsys.readouterr().err
+    assert viewscale(["credentials", "--out", str(note / "secrets")]) == 2
+    assert f"--out {note / 'secrets'}: Not a directory" in capsys.readouterr().err
+    assert note.read_text() == "keep me\n" and sorted(tmp_path.iterdir()) == [note]
