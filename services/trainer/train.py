@@ -279,11 +279,15 @@ def pick_device(spec: str, local_rank: int) -> torch.device:
         raise ConfigError(str(exc)) from None
 
 
-def _loader_ignores_ctrl_c(_worker_id: int) -> None:
-    """A data-loader worker leaves Ctrl-C to the training process (the terminal sends it to all of
-    them): it stops when the loader is shut down, so the step in progress still gets its batch and
-    the stop can save a checkpoint."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
+def _loader_leaves_stops_to_training(_worker_id: int) -> None:
+    """A data-loader worker leaves the stop signals to the training process: a terminal's Ctrl-C
+    reaches the whole process group, and so does SIGTERM from Slurm's scancel, systemd's stop or
+    ``kill -- -PGID``. The worker stops when the loader is shut down (or, if the training process
+    is killed outright, when torch's watchdog sees its parent gone). A worker ended by the signal
+    would make torch's SIGCHLD handler raise in the training process wherever it is, the
+    checkpoint save included, and the stop would save nothing."""
+    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+        signal.signal(sig, signal.SIG_IGN)
 
 
 def dist_env() -> tuple[int, int, int]:
@@ -459,7 +463,7 @@ def train(
         persistent_workers=cfg.num_workers > 0,
         # its own generator: creating the iterator must not draw from the training RNG stream
         generator=torch.Generator().manual_seed(cfg.seed + rank),
-        worker_init_fn=_loader_ignores_ctrl_c,
+        worker_init_fn=_loader_leaves_stops_to_training,
     )
 
     info_base = {
@@ -535,6 +539,7 @@ def train(
         p.is_contiguous(memory_format=torch.channels_last) for p in policy.encoder.parameters() if p.dim() == 4
     )
     saved_at = start  # the step of the newest checkpoint
+    it = None
     try:
         it = iter(loader)
         while step < cfg.steps:
@@ -636,7 +641,9 @@ def train(
             bar.close()
         if log_file is not None:
             log_file.close()
-        del loader
+        # The loader's workers end here (the iterator's last reference): they ignore SIGTERM, which
+        # is all multiprocessing's exit handler would send them, so left to exit the run would hang.
+        del loader, it
 
     elapsed = time.perf_counter() - t_start
     result.step = step

@@ -313,6 +313,20 @@ def _process_group(cmd: list[str]):
             os.killpg(proc.pid, signal.SIGKILL)
 
 
+def _group_members(pgid: int) -> list[str]:
+    """The processes still in process group ``pgid`` (pid and command line), from /proc."""
+    found = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+            cmdline = (stat.parent / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+        except OSError:  # ended while we looked
+            continue
+        if int(fields[2]) == pgid and fields[0] != "Z":
+            found.append(f"{stat.parent.name}: {cmdline.strip()}")
+    return found
+
+
 def _wait_for_log(out: Path, proc: subprocess.Popen, timeout: float = 120) -> None:
     log = out / "log.jsonl"
     end = time.monotonic() + timeout
@@ -322,23 +336,30 @@ def _wait_for_log(out: Path, proc: subprocess.Popen, timeout: float = 120) -> No
         time.sleep(0.1)
 
 
-def test_ctrl_c_stops_after_the_step_and_saves_it(sim_dataset, tmp_path):
-    """Ctrl-C in a terminal reaches the trainer and its data-loader workers alike (the process
-    group): training ends after the step in progress with a checkpoint there, and the same command
-    resumes from it. Before, the run ended with no checkpoint since the last one (up to 499 steps)."""
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["ctrl-c", "sigterm-to-the-group"])
+def test_a_stop_signal_to_the_group_stops_after_the_step_and_saves_it(sim_dataset, tmp_path, sig):
+    """Ctrl-C in a terminal (SIGINT), like Slurm's scancel or systemd's stop (SIGTERM), reaches the
+    trainer and its data-loader workers alike (the process group): training ends after the step in
+    progress with a checkpoint there, no process is left behind, and the same command resumes.
+    Before, Ctrl-C lost every step since the last checkpoint (up to 499); SIGTERM then killed the
+    loader workers, whose end raised in the middle of the save (exit 1, nothing saved)."""
     out = tmp_path / "run"
     cmd = [sys.executable, "-m", "services.cli", "train", "--data", str(sim_dataset), "--out", str(out)]
     cmd += ["--workers", "2", "--no-progress", "--set", "checkpoint_every=100000", "--set", "batch_size=8"]
     with _process_group([*cmd, "--steps", "100000"]) as proc:
         _wait_for_log(out, proc)
-        os.killpg(proc.pid, signal.SIGINT)
+        os.killpg(proc.pid, sig)
         said = proc.communicate(timeout=60)[0]
+        left = time.monotonic() + 15  # the loader's workers end with it
+        while stayed := _group_members(proc.pid):
+            assert time.monotonic() < left, f"left behind: {stayed}"
+            time.sleep(0.2)
     assert proc.returncode == 130, said[-3000:]
     saved = sorted(p.name for p in (out / "checkpoints").glob("step_*"))
     assert len(saved) == 1, saved
     step = int(saved[0].removeprefix("step_"))
     assert step >= 1
-    assert "SIGINT: stopping after this step, saving a checkpoint" in said
+    assert f"{sig.name}: stopping after this step, saving a checkpoint" in said
     assert f"stopped at step {step} of 100000: checkpoint {out / 'checkpoints' / saved[0]}" in said
     assert "Traceback" not in said and "exited unexpectedly" not in said, said[-3000:]
     rows = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
