@@ -140,7 +140,8 @@ def save_checkpoint(
     train_json: dict[str, Any],
     keep: int = 2,
 ) -> Path:
-    """Write one checkpoint folder, then point ``latest`` at it, then drop the oldest beyond ``keep``."""
+    """Write one checkpoint folder, then point ``latest`` at it, then drop the oldest beyond ``keep``
+    and the ``.partial`` folders of saves that were cut short (a run stopped at once mid-save)."""
     from safetensors.torch import save_file
 
     path = checkpoint_dir(run_dir, step)
@@ -163,6 +164,8 @@ def save_checkpoint(
     for old in done[:-keep]:
         if old != path:
             shutil.rmtree(old, ignore_errors=True)
+    for cut in path.parent.glob("step_*.partial"):
+        shutil.rmtree(cut, ignore_errors=True)
     return path
 
 
