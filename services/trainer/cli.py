@@ -51,7 +51,7 @@ def _stop_on_signals(stop: threading.Event, announce: bool):
 def _train(args: argparse.Namespace) -> int:
     from services.core.config import ConfigError
     from services.core.runtime import OutputError, writable_dir
-    from services.policy.checkpoint import CheckpointError
+    from services.policy.checkpoint import CheckpointError, latest_checkpoint
     from services.trainer.config import load_train_config
     from services.trainer.train import TrainingError, dist_env, train
 
@@ -72,6 +72,7 @@ def _train(args: argparse.Namespace) -> int:
     if args.no_progress:
         overrides.append("progress=false")
     stop = threading.Event()
+    cfg = None
     try:
         cfg = load_train_config(args.config, [*overrides, *args.set])
         writable_dir(cfg.out, "--out")  # before the dataset is opened and the model built
@@ -81,7 +82,19 @@ def _train(args: argparse.Namespace) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print("interrupted: resume with the same command (from the run's latest checkpoint)", file=sys.stderr)
+        # (a second signal: stopped at once, the step in progress and a save under way lost)
+        if cfg is None:
+            print("interrupted", file=sys.stderr)
+            return 130
+        try:
+            saved = latest_checkpoint(cfg.out)
+        except CheckpointError as exc:
+            print(f"interrupted: {exc}", file=sys.stderr)
+            return 130
+        if saved is None:
+            print(f"interrupted: {cfg.out} has no checkpoint yet; the same command starts over", file=sys.stderr)
+        else:
+            print(f"interrupted: the same command resumes from {saved}", file=sys.stderr)
         return 130
     if result.stopped:
         if dist_env()[0] == 0 and result.checkpoint is None:
