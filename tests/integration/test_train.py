@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from polling import wait_for
 from safetensors.torch import load_file
 from tiny_models import TINY_VIT
 
@@ -313,17 +314,16 @@ def _process_group(cmd: list[str]):
             os.killpg(proc.pid, signal.SIGKILL)
 
 
-def _group_members(pgid: int) -> list[str]:
-    """The processes still in process group ``pgid`` (pid and command line), from /proc."""
+def _group_members(pgid: int) -> list[int]:
+    """The pids of the processes still in process group ``pgid`` (zombies aside), from /proc."""
     found = []
     for stat in Path("/proc").glob("[0-9]*/stat"):
         try:
-            fields = stat.read_text().rsplit(")", 1)[1].split()
-            cmdline = (stat.parent / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+            state, _ppid, pgrp = stat.read_text().rsplit(")", 1)[1].split()[:3]
         except OSError:  # ended while we looked
             continue
-        if int(fields[2]) == pgid and fields[0] != "Z":
-            found.append(f"{stat.parent.name}: {cmdline.strip()}")
+        if int(pgrp) == pgid and state != "Z":
+            found.append(int(stat.parent.name))
     return found
 
 
@@ -350,10 +350,7 @@ def test_a_stop_signal_to_the_group_stops_after_the_step_and_saves_it(sim_datase
         _wait_for_log(out, proc)
         os.killpg(proc.pid, sig)
         said = proc.communicate(timeout=60)[0]
-        left = time.monotonic() + 15  # the loader's workers end with it
-        while stayed := _group_members(proc.pid):
-            assert time.monotonic() < left, f"left behind: {stayed}"
-            time.sleep(0.2)
+        wait_for(lambda: not _group_members(proc.pid), 15, "no process left in the group (loader workers)")
     assert proc.returncode == 130, said[-3000:]
     saved = sorted(p.name for p in (out / "checkpoints").glob("step_*"))
     assert len(saved) == 1, saved
