@@ -17,6 +17,8 @@ import secrets
 from collections.abc import Iterable
 from pathlib import Path
 
+from services.core.runtime import writable_dir
+
 # The service users of deploy/zenoh/router-acl.json5 (a test keeps the two in step).
 SERVICE_USERS = ("sim", "camera", "robot", "teleop", "recorder", "session", "trainer", "operator")
 USERS_FILE = "users.txt"
@@ -54,10 +56,7 @@ def write_credentials(out: Path, users: Iterable[str] = SERVICE_USERS, force: bo
             f"{existing[0]} exists: credentials are already there (--force replaces every password; "
             "then restart the router and every service)"
         )
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise ValueError(f"--out {out}: {exc.strerror or exc}") from None
+    writable_dir(out, "--out")
     os.chmod(out, 0o700)
     passwords = {user: secrets.token_urlsafe(24) for user in users}  # 192 random bits, [A-Za-z0-9_-]
     written = []
