@@ -115,6 +115,9 @@ def writable_dir(path: str | os.PathLike, argument: str) -> Path:
     p = Path(path)
     try:
         p.mkdir(parents=True, exist_ok=True)
+    except (FileExistsError, NotADirectoryError):  # it, or a folder on its way, is a file
+        file = next((q for q in [p, *p.parents] if q.exists() and not q.is_dir()), p)
+        raise OutputError(f"{argument} {p}: not a directory" + (f" ({file} is a file)" if file != p else "")) from None
     except OSError as exc:
         raise OutputError(f"{argument} {p}: {exc.strerror or exc}") from None
     if not p.is_dir() or not os.access(p, os.W_OK | os.X_OK):

@@ -16,7 +16,6 @@ import asyncio
 import json
 import signal
 import sys
-from pathlib import Path
 
 from services.policy.config import PLACEMENTS, PRECISIONS  # pydantic only, as the CLI's --log-level check
 
@@ -92,9 +91,12 @@ def _serve(args: argparse.Namespace) -> int:
             inference_device(cfg.device, cfg.precision if here else "fp32")
     except (CheckpointError, ValueError, OSError) as exc:
         return _error(exc)
-    log_dir = Path(args.log_dir) if args.log_dir else None
-    if log_dir:
-        log_dir.mkdir(parents=True, exist_ok=True)
+    from services.core.runtime import OutputError, writable_dir
+
+    try:
+        log_dir = writable_dir(args.log_dir, "--log-dir") if args.log_dir else None
+    except OutputError as exc:
+        return _error(exc)
     try:
         with LocalWorkers(cfg, cfg.workers if not cfg.in_process else 0, log_dir) as local:
             addresses = [*cfg.worker, *local.addresses]

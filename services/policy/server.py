@@ -27,6 +27,7 @@ TLS protect the rest.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import copy
 import ipaddress
 import logging
@@ -474,16 +475,42 @@ class WorkerPool:
             out[v] = w
         return out
 
-    async def wait_ready(self, n: int, timeout: float) -> None:
-        deadline = time.monotonic() + timeout
+    async def wait_ready(
+        self, n: int, timeout: float, stop: asyncio.Event | None = None, first_say_s: float = 5.0, say_s: float = 15.0
+    ) -> bool:
+        """Until ``n`` workers are healthy (True), or ``stop`` is set first (False: a SIGTERM or
+        Ctrl-C while waiting ends the server now, not after ``timeout``). While it waits it logs
+        which workers are not ready and why, after ``first_say_s`` and then every ``say_s``.
+        TimeoutError after ``timeout``."""
+        start = time.monotonic()
+        say_at = start + first_say_s
         while len(self.healthy) < n:
-            if time.monotonic() > deadline:
-                raise TimeoutError(
-                    f"{len(self.healthy)} of {n} workers ready after {timeout:.0f}s: "
-                    + "; ".join(f"{w.address}: {w.reason}" for w in self.workers if not w.healthy)
+            if stop is not None and stop.is_set():
+                return False
+            now = time.monotonic()
+            if now > start + timeout:
+                ready = len(self.healthy)
+                raise TimeoutError(f"{ready} of {n} workers ready after {timeout:.0f}s: {self._not_ready()}")
+            if now >= say_at:
+                log.warning(
+                    "%d of %d workers ready after %.0f s (waiting up to %.0f s, worker_ready_s): %s",
+                    len(self.healthy),
+                    n,
+                    now - start,
+                    timeout,
+                    self._not_ready(),
                 )
+                say_at = now + say_s
             await self.check_all(only_unhealthy=True)
-            await asyncio.sleep(0.1)
+            if stop is None:
+                await asyncio.sleep(0.1)
+            else:
+                with contextlib.suppress(TimeoutError):
+                    await asyncio.wait_for(stop.wait(), 0.1)
+        return True
+
+    def _not_ready(self) -> str:
+        return "; ".join(f"{w.address}: {w.reason}" for w in self.workers if not w.healthy)
 
     async def close(self) -> None:
         if self._task is not None:
@@ -1127,7 +1154,9 @@ async def serve_policy(cfg, stop: asyncio.Event, worker_addresses: list[str], an
                 precision=cfg.precision,
             )
             await pool.start()
-            await pool.wait_ready(1, cfg.worker_ready_s)
+            if not await pool.wait_ready(1, cfg.worker_ready_s, stop):
+                log.info("stopped before any worker was ready")
+                return 0
             service.backend = lambda: RemoteDenoiser(pool, spec)
             ready, n = len(pool.healthy), len(worker_addresses)
             mode = f"{n} worker{'s' * (n != 1)}"

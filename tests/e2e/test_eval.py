@@ -158,7 +158,7 @@ def test_rerender_refuses_bad_arguments_before_writing_anything(sim_dataset, tmp
         (["--out", str(raw)], f"--out {raw} is a --raw folder"),
         (["--out", str(raw) + "/"], "is a --raw folder"),
         (["--out", str(tmp_path / "rr"), "--size", "0"], "--size must be 16..4096 px, got 0"),  # was a traceback
-        (["--out", str(tmp_path / "a-file")], f"--out {tmp_path / 'a-file'}: File exists"),
+        (["--out", str(tmp_path / "a-file")], f"--out {tmp_path / 'a-file'}: not a directory"),
     ]
     for extra, says in cases:
         assert main(["rerender", "--raw", str(raw), "--rig", "three30", *extra]) == 2, extra

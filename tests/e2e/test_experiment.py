@@ -101,7 +101,10 @@ def test_an_unknown_question_or_scale_is_one_line(tmp_path):
         (["q1", "--only", "views=F"], "expected AXIS=VALUE with AXIS one of train, space, N"),
         (["q1", "--only", "N=7"], "this question's N values are 10, 25, 50"),
         # a file for --root: before, a NotADirectoryError traceback once the first stage started
-        (["q1", "--scale", "smoke", "--root", str(tmp_path / "a-file")], f"--root {tmp_path / 'a-file'}: File exists"),
+        (
+            ["q1", "--scale", "smoke", "--root", str(tmp_path / "a-file")],
+            f"--root {tmp_path / 'a-file'}: not a directory",
+        ),
     ]:
         (tmp_path / "a-file").write_text("")
         proc = subprocess.run(

@@ -8,13 +8,17 @@ from __future__ import annotations
 import json
 import re
 import shutil
+import signal
 import socket
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
 import torch
-from cli_process import viewscale
+from cli_process import user_env, viewscale
 from policy_processes import start_server, start_worker, stop
+from polling import wait_for
 
 from services.core.bus import free_tcp_port
 from services.policy.checkpoint import MODEL_FILE, CheckpointError, inference_device, load_policy, read_weights
@@ -231,3 +235,38 @@ def test_eval_whose_every_request_fails_exits_1_with_the_first_refusal(tiny_chec
     finally:
         stop(server)
         stop(worker)
+
+
+def test_a_log_dir_that_is_a_file_is_one_line_before_any_worker_starts(tiny_checkpoint, tmp_path):
+    note = tmp_path / "note.txt"
+    note.write_text("keep me\n")
+    proc = viewscale("serve", "--checkpoint", str(tiny_checkpoint), "--workers", "1", "--log-dir", str(note))
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr.strip() == f"error: --log-dir {note}: not a directory"
+    assert "listening" not in proc.stdout and note.read_text() == "keep me\n"
+
+
+def test_a_stop_while_waiting_for_workers_ends_the_server_at_once_and_the_wait_says_why(tiny_checkpoint, tmp_path):
+    """Waiting for workers (up to worker_ready_s, 120 s by default), the server says which are not
+    ready and why, and a SIGTERM (docker stop, systemd) or Ctrl-C ends it then, not when the wait
+    runs out: before, it went on waiting the whole 120 s."""
+    closed = f"127.0.0.1:{free_tcp_port()}"  # nothing listens there
+    err = tmp_path / "serve.err"
+    with open(err, "w") as f:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "services.cli", "serve", "--checkpoint", str(tiny_checkpoint),
+             "--listen", "127.0.0.1:0", "--worker", closed],
+            cwd=ROOT, stdout=subprocess.DEVNULL, stderr=f, env=user_env(),
+        )  # fmt: skip
+    try:
+        said = wait_for(lambda: "0 of 1 workers ready after 5 s" in err.read_text(), 60, "the wait's first report")
+        assert said and f"waiting up to 120 s, worker_ready_s): {closed}: " in err.read_text()
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=10) == 0  # (it checks again within 0.1 s; a health check takes at most 2 s)
+    finally:
+        proc.kill()
+        proc.wait()
+    text = err.read_text()
+    assert "stopped before any worker was ready" in text
+    no_traceback(text)
+    assert not [ln for ln in text.splitlines() if ln.startswith("error:")]  # a stop is not the wait running out

@@ -129,5 +129,5 @@ def test_credentials_into_a_file_or_under_one_is_one_clear_error_and_changes_not
     assert viewscale(["credentials", "--out", str(note)]) == 2
     assert f"--out {note}: not a directory" in capsys.readouterr().err
     assert viewscale(["credentials", "--out", str(note / "secrets")]) == 2
-    assert f"--out {note / 'secrets'}: Not a directory" in capsys.readouterr().err
+    assert f"--out {note / 'secrets'}: not a directory ({note} is a file)" in capsys.readouterr().err
     assert note.read_text() == "keep me\n" and sorted(tmp_path.iterdir()) == [note]
