@@ -495,13 +495,13 @@ def main(argv: list[str] | None = None) -> int:
     from services.core.runtime import LOG_FORMAT, die_with_parent
 
     die_with_parent()  # started by a session or an experiment: do not outlive it
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    logging.basicConfig(level=getattr(logging, args.log_level), format=LOG_FORMAT)
+    args = None
     try:
+        args = build_parser().parse_args(argv)  # (it imports every command's module: a second or so)
+        logging.basicConfig(level=getattr(logging, args.log_level), format=LOG_FORMAT)
         return int(args.func(args) or 0)
     except KeyboardInterrupt:  # before a command's own handling (while torch imports): no traceback
-        print(f"viewscale {args.command}: interrupted", file=sys.stderr)
+        print(f"viewscale{f' {args.command}' if args else ''}: interrupted", file=sys.stderr)
         return 130
 
 

@@ -23,6 +23,9 @@ def configure_logging(level: str = "INFO") -> None:
     lvl = getattr(logging, log_level_name(level))  # a name that is no level raises, never INFO in silence
     logging.basicConfig(level=lvl, format=LOG_FORMAT, stream=sys.stderr)
     logging.getLogger().setLevel(lvl)
+    # torch's own INFO lines are not the service's (e.g. FakeTensor cache stats at exit, printed
+    # when a Ctrl-C lands while torch imports): they show from DEBUG on
+    logging.getLogger("torch").setLevel(lvl if lvl <= logging.DEBUG else max(lvl, logging.WARNING))
 
 
 def stop_on_signals(stop: threading.Event) -> None:

@@ -12,6 +12,7 @@ import signal
 import socket
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -270,3 +271,29 @@ def test_a_stop_while_waiting_for_workers_ends_the_server_at_once_and_the_wait_s
     assert "stopped before any worker was ready" in text
     no_traceback(text)
     assert not [ln for ln in text.splitlines() if ln.startswith("error:")]  # a stop is not the wait running out
+
+
+# Python as a terminal starts it: SIGINT raises KeyboardInterrupt (a parent that ignores SIGINT,
+# as a background job of a script does, would hand that on to the child)
+AS_FROM_A_TERMINAL = (
+    "import signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
+    "from services.cli import main; sys.exit(main())"
+)
+
+
+@pytest.mark.parametrize("after_s", [0.2, 0.6])
+def test_ctrl_c_while_the_command_line_starts_is_one_line_not_a_traceback(tiny_checkpoint, after_s):
+    """The first second of every command goes to building the parser (it imports each command's
+    module), then serve imports torch: a Ctrl-C there printed a KeyboardInterrupt traceback from
+    deep in scipy's imports and exited -2."""
+    proc = subprocess.Popen(
+        [sys.executable, "-c", AS_FROM_A_TERMINAL, "serve", "--checkpoint", str(tiny_checkpoint),
+         "--listen", "127.0.0.1:0", "--in-process"],
+        cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=user_env(),
+    )  # fmt: skip
+    time.sleep(after_s)  # the moment of the Ctrl-C is what is tested
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=30)
+    assert "listening" not in out  # (it was still starting)
+    assert proc.returncode == 130, err
+    assert err.strip() in ("viewscale: interrupted", "viewscale serve: interrupted"), err
