@@ -35,12 +35,14 @@ from pathlib import Path
 from typing import Any
 
 from services.core.bus import Bus
-from services.core.runtime import child_env
+from services.core.config import ConfigError
+from services.core.rig import load_rig
+from services.core.runtime import OutputError, child_env, writable_dir
 from services.core.stats import percentile, wilson
 from services.policy.aggregation import CompositionError, renormalise
 from services.policy.checkpoint import read_info, resolve_checkpoint
 from services.session.collect import CollectError, LocalStack
-from services.session.config import DEFAULT_MAX_TICKS, EVAL_SEEDS, SessionConfig
+from services.session.config import DEFAULT_MAX_TICKS, EVAL_SEED_FLOOR, EVAL_SEEDS, SessionConfig
 from services.session.session import Session, SessionError
 from services.session.video import write_video
 
@@ -294,6 +296,21 @@ def _check_gamma(spec: EvalSpec, views: list[str]) -> None:
         raise EvalError(f"--gamma {','.join(f'{v}={g}' for v, g in spec.gamma.items())}: {exc}") from None
 
 
+def _check_numbers(spec: EvalSpec) -> None:
+    """The numeric flags, checked before anything starts (they were found out by the sim's or the
+    session's config a few seconds in, as a multi-line validation error, or not at all)."""
+    for flag, value, low, high in [
+        ("--max-ticks", spec.max_ticks, 1, None),
+        ("--seed", spec.seed, 0, None),
+        ("--video", spec.video, 0, None),
+        ("--workers", spec.workers, 0, None),
+        ("--size", spec.size, 16, 4096),
+    ]:
+        if value is not None and (value < low or (high is not None and value > high)):
+            bound = f"{low}..{high}" if high is not None else f"at least {low}"
+            raise EvalError(f"{flag} must be {bound}, got {value}")
+
+
 def evaluate(spec: EvalSpec, out: Path, progress: Callable[[str], None] = print) -> EvalResult:
     t0 = time.monotonic()
     out = Path(out)
@@ -301,6 +318,9 @@ def evaluate(spec: EvalSpec, out: Path, progress: Callable[[str], None] = print)
         raise EvalError(f"unknown task {spec.task!r}; tasks: {', '.join(DEFAULT_MAX_TICKS)}")
     if spec.episodes < 1:
         raise EvalError(f"--episodes must be at least 1, got {spec.episodes}")
+    _check_numbers(spec)
+    if spec.expert and (spec.checkpoint or spec.server):
+        raise EvalError("--expert evaluates the scripted expert: leave out --checkpoint and --server")
     facts = None
     if not spec.expert:
         if spec.server:
@@ -324,10 +344,29 @@ def evaluate(spec: EvalSpec, out: Path, progress: Callable[[str], None] = print)
     views = spec.views or (facts["views"] if facts else None)
     if spec.gamma:
         _check_gamma(spec, views or [])
+    try:
+        cameras = list(load_rig(rig).cameras)  # a typo in --rig: one line now, not from the sim later
+    except ConfigError as exc:
+        raise EvalError(f"--rig: {exc}") from None
+    missing = [v for v in views or [] if v not in cameras]
+    if missing and not spec.expert:
+        given = "--views" if spec.views else f"--views (default: the training views, {','.join(views or [])})"
+        raise EvalError(f"{given}: rig {rig} has no camera {', '.join(missing)}; its cameras: {', '.join(cameras)}")
+    video_camera = spec.video_camera or (views[0] if views else cameras[0])
+    if spec.video and video_camera not in cameras:  # (found out once every episode had run, before)
+        raise EvalError(f"--video-camera {video_camera}: rig {rig} has no such camera ({', '.join(cameras)})")
+    if spec.seed is not None and spec.seed < EVAL_SEED_FLOOR and not spec.expert:
+        progress(
+            f"note: --seed {spec.seed} is below {EVAL_SEED_FLOOR}, among the seeds collection records: "
+            "a policy trained on such episodes is evaluated on its training scenes"
+        )
     rollouts = out / "rollouts"
     if rollouts.exists() and any(rollouts.glob("*.mcap")):
         raise EvalError(f"{rollouts} already holds rollouts: pick another --out (or remove it)")
-    out.mkdir(parents=True, exist_ok=True)
+    try:
+        writable_dir(out, "--out")
+    except OutputError as exc:
+        raise EvalError(str(exc)) from None
     stats_file = out / "logs" / "policy_stats.jsonl"
     stats_file.parent.mkdir(parents=True, exist_ok=True)
     stats_file.unlink(missing_ok=True)
@@ -402,8 +441,9 @@ def evaluate(spec: EvalSpec, out: Path, progress: Callable[[str], None] = print)
     (out / "report.json").write_text(json.dumps({"summary": rep, "episodes": rows}, indent=2) + "\n")
     (out / "report.md").write_text(format_report(rep, rows))
     if spec.video:
-        cam = spec.video_camera or (views[0] if views else "F")
         for r in rows[: spec.video]:
-            path = write_video(Path(r["path"]), cam, out / "videos" / f"{Path(r['path']).stem}.mp4", r["success"])
+            path = write_video(
+                Path(r["path"]), video_camera, out / "videos" / f"{Path(r['path']).stem}.mp4", r["success"]
+            )
             progress(f"video {path}")
     return EvalResult(rep, out, rows)

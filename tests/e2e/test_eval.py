@@ -96,17 +96,37 @@ def test_the_expert_row_goes_through_the_same_path(tmp_path):
     assert len(list((out / "rollouts").glob("*.mcap"))) == 2
 
 
-def test_eval_refuses_bad_input_with_one_line(tiny_checkpoint, tmp_path):
-    for args, text in [
-        (["--task", "pour"], "unknown task"),
-        (["--episodes", "0"], "--episodes"),
-        (["--views", "XX"], "XX"),
+def test_eval_refuses_bad_input_with_one_line_before_starting_anything(tiny_checkpoint, tmp_path):
+    """Each is one error line within a second, nothing written: before, most of the numbers were
+    found out a few seconds in by the sim's or the session's config (a multi-line validation error),
+    --video-camera once every episode had run (a traceback), --video -1 not at all."""
+    ck = ["--checkpoint", str(tiny_checkpoint)]
+    note = tmp_path / "note.txt"
+    note.write_text("keep me\n")
+    for args, says in [
+        ([*ck, "--task", "pour"], "unknown task 'pour'"),
+        ([*ck, "--episodes", "0"], "--episodes must be at least 1, got 0"),
+        ([*ck, "--views", "F,XX"], "--views: rig three15 has no camera XX; its cameras: F, FL, FR"),
+        ([*ck, "--rig", "front"], "--views (default: the training views, F,FL,FR): rig front has no camera FL, FR"),
+        ([*ck, "--rig", "nosuch"], "--rig: unknown rig 'nosuch'"),
+        (
+            [*ck, "--video", "1", "--video-camera", "ZZ"],
+            "--video-camera ZZ: rig three15 has no such camera (F, FL, FR)",
+        ),
+        ([*ck, "--video", "-1"], "--video must be at least 0, got -1"),
+        ([*ck, "--max-ticks", "0"], "--max-ticks must be at least 1, got 0"),
+        ([*ck, "--seed", "-5"], "--seed must be at least 0, got -5"),
+        ([*ck, "--size", "5"], "--size must be 16..4096, got 5"),
+        ([*ck, "--workers", "-2"], "--workers must be at least 0, got -2"),
+        ([*ck, "--expert"], "--expert evaluates the scripted expert: leave out --checkpoint and --server"),
+        (["--checkpoint", str(tmp_path / "none")], "neither a checkpoint folder nor a run directory"),
+        ([*ck, "--out", str(note)], f"--out {note}: not a directory"),
     ]:
-        proc = viewscale("eval", "--checkpoint", str(tiny_checkpoint), "--out", str(tmp_path / "x"), *args)
-        assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr[-2000:]
-        assert proc.stderr.strip().splitlines()[-1].startswith("error:") and text in proc.stderr
-    proc = viewscale("eval", "--checkpoint", str(tmp_path / "none"), "--out", str(tmp_path / "y"))
-    assert proc.returncode == 2 and "error:" in proc.stderr and "Traceback" not in proc.stderr
+        proc = viewscale("eval", "--out", str(tmp_path / "x"), *args)
+        assert proc.returncode == 2, proc.stderr[-2000:]
+        assert proc.stderr.strip().splitlines() == [proc.stderr.strip()] and proc.stderr.startswith("error: ")
+        assert says in proc.stderr, (args, proc.stderr)
+        assert not (tmp_path / "x").exists() and note.read_text() == "keep me\n"
 
 
 def test_the_evaluation_process_never_imports_torch():
