@@ -130,7 +130,8 @@ def test_bad_arguments_fail_fast_with_one_line(tmp_path):
         text=True,
         timeout=60,
     )
-    assert proc.returncode == 2 and proc.stderr.strip() == f"error: --out {blocker / 'sub'}: Not a directory"
+    says = f"error: --out {blocker / 'sub'}: not a directory ({blocker} is a file)"
+    assert proc.returncode == 2 and proc.stderr.strip() == says
 
 
 def test_sigterm_mid_session_keeps_the_partial_episode_and_stops_every_service(tmp_path):

@@ -455,4 +455,4 @@ def test_an_unwritable_out_is_one_error_line(raw_dir, tmp_path, capsys):
     blocker.write_text("")
     rc = viewscale(["dataset", "build", "--raw", str(raw_dir), "--views", "F", "--out", str(blocker / "ds")])
     err = capsys.readouterr().err
-    assert rc == 2 and err.strip() == f"error: --out {blocker / 'ds'}: Not a directory"
+    assert rc == 2 and err.strip() == f"error: --out {blocker / 'ds'}: not a directory ({blocker} is a file)"

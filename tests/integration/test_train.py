@@ -450,4 +450,4 @@ def test_an_unwritable_out_is_one_error_line_before_training(sim_dataset, tmp_pa
     blocker.write_text("")
     rc = viewscale(["train", "--data", str(sim_dataset), "--out", str(blocker / "run"), "--steps", "1"])
     err = capsys.readouterr().err
-    assert rc == 2 and err.strip() == f"error: --out {blocker / 'run'}: Not a directory"
+    assert rc == 2 and err.strip() == f"error: --out {blocker / 'run'}: not a directory ({blocker} is a file)"
