@@ -18,7 +18,7 @@ from pathlib import Path
 from services.core.action_spaces import SPACES, STATE_FRAMES
 from services.core.rig import CALIBRATION_MAX_AGE_DAYS
 from services.core.runtime import OutputError, writable_dir
-from services.dataset.build import BuildParams, build_dataset
+from services.dataset.build import BuildParams, build_dataset, find_episodes
 from services.dataset.episodes import EpisodeError
 from services.dataset.store import CONTACT_SHEET, DatasetError, DatasetStore
 from services.dataset.summary import format_summary
@@ -66,6 +66,7 @@ def _build(args: argparse.Namespace) -> int:
         )
         if args.jobs < 1:
             raise DatasetError(f"--jobs must be at least 1, got {args.jobs}")
+        find_episodes([Path(p) for p in args.raw])  # a wrong --raw: no empty --out folder left behind
         writable_dir(args.out, "--out")  # before an hour of decoding, not after
         result = build_dataset(
             [Path(p) for p in args.raw],

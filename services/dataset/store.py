@@ -66,7 +66,8 @@ class DatasetStore:
     def __init__(self, path: str | Path):
         self.path = Path(path)
         if not self.path.is_dir():
-            raise DatasetError(f"dataset {self.path} does not exist")
+            what = "is a file, not a folder" if self.path.exists() else "does not exist"
+            raise DatasetError(f"dataset {self.path} {what}")
         manifest = self.path / MANIFEST
         if not manifest.is_file():
             hint = (

@@ -456,3 +456,18 @@ def test_an_unwritable_out_is_one_error_line(raw_dir, tmp_path, capsys):
     rc = viewscale(["dataset", "build", "--raw", str(raw_dir), "--views", "F", "--out", str(blocker / "ds")])
     err = capsys.readouterr().err
     assert rc == 2 and err.strip() == f"error: --out {blocker / 'ds'}: not a directory ({blocker} is a file)"
+
+
+def test_a_wrong_raw_or_a_file_for_a_dataset_is_one_line_and_leaves_nothing(tmp_path, capsys):
+    """A --raw with no episodes used to leave an empty --out folder behind (made before --raw was
+    looked at); `dataset info` on a file said it did not exist."""
+    (tmp_path / "empty").mkdir()
+    for raw, says in [(tmp_path / "nowhere", "does not exist"), (tmp_path / "empty", "no episode files")]:
+        rc = viewscale(["dataset", "build", "--raw", str(raw), "--views", "F", "--out", str(tmp_path / "ds")])
+        err = capsys.readouterr().err
+        assert rc == 2 and says in err and err.count("\n") == 1, err
+        assert not (tmp_path / "ds").exists()
+    note = tmp_path / "note.txt"
+    note.write_text("keep me\n")
+    assert viewscale(["dataset", "info", str(note)]) == 2
+    assert capsys.readouterr().err.strip() == f"error: dataset {note} is a file, not a folder"
