@@ -127,10 +127,12 @@ def describe_errors(exc: ValidationError) -> str:
     """pydantic's errors on one line: ``field.path: message (got value)``, joined by ``; ``."""
     parts = []
     for e in exc.errors():
-        loc = ".".join(str(p) for p in e["loc"] if p not in ("external",)) or "(config)"
+        loc = ".".join(str(p) for p in e["loc"] if p not in ("external",))
         got = e.get("input")
         shown = "" if isinstance(got, dict) or got is None else f" (got {str(got)[:60]!r})"
-        parts.append(f"{loc}: {e['msg']}{shown}")
+        # our validators' own words, without pydantic's 'Value error, ' before them
+        msg = str(e["ctx"]["error"]) if e["type"] == "value_error" and "error" in e.get("ctx", {}) else e["msg"]
+        parts.append(f"{loc}: {msg}{shown}" if loc else f"{msg}{shown}")  # (no loc: a check across fields)
     return "; ".join(parts)
 
 

@@ -71,13 +71,19 @@ def _error(exc: Exception, code: int = 2) -> int:
 def _serve(args: argparse.Namespace) -> int:
     from services.policy.config import ServerConfig
 
-    if args.views:
+    if args.views is not None:
         args.views = [v.strip() for v in args.views.split(",") if v.strip()]
+        if not args.views:
+            return _error("--views names no camera (leave it out for the training views)")
     flags = ["checkpoint", "listen", "views", "workers", "worker", "in_process", "placement", "device", "threads"]
     flags += ["precision", "rig", "task"]
     cfg = _load(ServerConfig, args, flags, "policy")
     if cfg is None:
         return 2
+    if cfg.in_process and (cfg.workers or cfg.worker):  # (a config file's workers, --in-process to debug)
+        unused = [f"{cfg.workers} local workers"] if cfg.workers else []
+        unused += [f"worker {a}" for a in cfg.worker]
+        print(f"warning: --in-process computes every view here; not used: {', '.join(unused)}", file=sys.stderr)
     from services.policy.checkpoint import CheckpointError, inference_device
     from services.policy.server import LocalWorkers, load_spec, serve_policy
     from services.policy.transport import ListenError

@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Annotated, Literal, get_args
 
-from pydantic import BeforeValidator, Field, model_validator
+from pydantic import BeforeValidator, Field, field_validator, model_validator
 
 from services.core.config import Frozen, LogLevel
 
@@ -94,3 +94,14 @@ class ServerConfig(Frozen):
     max_sessions: int = Field(256, ge=1)  # robot sessions kept (idle ones are forgotten first)
     max_message_mb: int = Field(16, ge=1)  # gRPC message size cap, both ways
     log_level: LogLevel = "INFO"  # logging level of the process
+
+    @field_validator("views")
+    @classmethod
+    def _views(cls, views: list[str] | None) -> list[str] | None:
+        if views is not None:
+            if not views:
+                raise ValueError("names no camera (leave it out for the training views)")
+            twice = sorted({v for v in views if views.count(v) > 1})
+            if twice:
+                raise ValueError(f"names {', '.join(twice)} more than once")
+        return views

@@ -348,6 +348,9 @@ def evaluate(spec: EvalSpec, out: Path, progress: Callable[[str], None] = print)
         cameras = list(load_rig(rig).cameras)  # a typo in --rig: one line now, not from the sim later
     except ConfigError as exc:
         raise EvalError(f"--rig: {exc}") from None
+    twice = sorted({v for v in views or [] if views.count(v) > 1})
+    if twice:
+        raise EvalError(f"--views names {', '.join(twice)} more than once")
     missing = [v for v in views or [] if v not in cameras]
     if missing and not spec.expert:
         given = "--views" if spec.views else f"--views (default: the training views, {','.join(views or [])})"

@@ -136,7 +136,7 @@ def test_a_port_another_server_holds_is_refused_not_shared(tiny_checkpoint):
     "listen, code, says",
     [
         ("192.0.2.1:0", 1, "cannot listen on 192.0.2.1:0: 192.0.2.1 is not an address of this machine"),
-        ("127.0.0.1:99999", 2, "listen: Value error, '127.0.0.1:99999' is not host:port with a port of 0-65535"),
+        ("127.0.0.1:99999", 2, "listen: '127.0.0.1:99999' is not host:port with a port of 0-65535"),
     ],
 )
 def test_an_address_it_cannot_listen_on_is_one_line(tiny_checkpoint, listen, code, says):
@@ -297,3 +297,30 @@ def test_ctrl_c_while_the_command_line_starts_is_one_line_not_a_traceback(tiny_c
     assert "listening" not in out  # (it was still starting)
     assert proc.returncode == 130, err
     assert err.strip() in ("viewscale: interrupted", "viewscale serve: interrupted"), err
+
+
+@pytest.mark.parametrize(
+    "args, says",
+    [
+        (["--views", ","], "error: --views names no camera (leave it out for the training views)"),
+        (["--views", "F,FL,F"], "error: invalid ServerConfig config: views: names F more than once"),
+    ],
+)
+def test_a_view_list_naming_nothing_or_a_camera_twice_is_one_line(tiny_checkpoint, args, says):
+    """`--views ,` fell back to the training views without a word; `F,FL,F` composed F twice."""
+    proc = viewscale("serve", "--checkpoint", str(tiny_checkpoint), "--listen", "127.0.0.1:0", *args)
+    assert proc.returncode == 2 and proc.stderr.startswith(says), proc.stderr
+    assert proc.stderr.count("\n") == 1 and "listening" not in proc.stdout
+
+
+def test_in_process_says_which_workers_it_leaves_unused(tiny_checkpoint):
+    """--in-process wins over workers from a config file or flags: said, not silent (the device
+    error after it keeps the test from starting a server)."""
+    proc = viewscale(
+        "serve", "--checkpoint", str(tiny_checkpoint), "--in-process", "--workers", "2",
+        "--worker", "127.0.0.1:7001", "--device", "tpu",
+    )  # fmt: skip
+    assert proc.returncode == 2, proc.stderr
+    warning, error = proc.stderr.strip().splitlines()
+    assert warning == "warning: --in-process computes every view here; not used: 2 local workers, worker 127.0.0.1:7001"
+    assert error.startswith("error: device 'tpu'")
