@@ -64,7 +64,9 @@ def _train(args: argparse.Namespace) -> int:
         "device": args.device,
         "seed": args.seed,
         "num_workers": args.workers,
-        "views": "[" + args.views.strip("[]") + "]" if args.views else None,
+        "views": json.dumps([v.strip() for v in args.views.strip("[]").split(",") if v.strip()])
+        if args.views is not None
+        else None,
     }
     overrides = [f"{k}={v}" for k, v in flags.items() if v is not None]
     if args.no_resume:

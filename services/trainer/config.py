@@ -12,7 +12,7 @@ from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import Field, model_validator
+from pydantic import Field, field_validator, model_validator
 
 from services.core.bus import BusConfig
 from services.core.config import ConfigError, Frozen, LogLevel, load_config, validate_config
@@ -21,21 +21,34 @@ from services.policy.model.presets import PRESETS, preset
 
 
 class OptimConfig(Frozen):
-    lr: float = 1e-4  # AdamW peak learning rate
-    betas: tuple[float, float] = (0.95, 0.999)  # AdamW betas (diffusion_policy's)
-    eps: float = 1e-8  # AdamW epsilon
-    weight_decay: float = 1e-6  # AdamW weight decay
-    warmup_steps: int = 500  # linear warm-up from 0 to lr
+    lr: float = Field(1e-4, gt=0)  # AdamW peak learning rate
+    betas: tuple[float, float] = (0.95, 0.999)  # AdamW betas (diffusion_policy's), each in [0, 1)
+    eps: float = Field(1e-8, gt=0)  # AdamW epsilon
+    weight_decay: float = Field(1e-6, ge=0)  # AdamW weight decay
+    warmup_steps: int = Field(500, ge=0)  # linear warm-up from 0 to lr
     schedule: Literal["cosine", "constant"] = "cosine"  # after warm-up: cosine decay to 0 at `steps`, or flat
-    grad_clip: float = 0.0  # max global gradient norm; 0 = no clipping
+    grad_clip: float = Field(0.0, ge=0)  # max global gradient norm; 0 = no clipping
+
+    @field_validator("betas")
+    @classmethod
+    def _betas(cls, betas: tuple[float, float]) -> tuple[float, float]:
+        if not all(0.0 <= b < 1.0 for b in betas):
+            raise ValueError("each must be in [0, 1)")
+        return betas
 
 
 class EmaConfig(Frozen):
     enabled: bool = True  # keep an exponential moving average of the weights (what checkpoints serve)
-    power: float = 0.75  # decay = 1 - (1 + step / inv_gamma) ** -power, as diffusion_policy's EMAModel
-    inv_gamma: float = 1.0  # see power
-    min_decay: float = 0.0  # lower clamp of the decay
-    max_decay: float = 0.9999  # upper clamp of the decay
+    power: float = Field(0.75, gt=0)  # decay = 1 - (1 + step / inv_gamma) ** -power, as diffusion_policy's EMAModel
+    inv_gamma: float = Field(1.0, gt=0)  # see power
+    min_decay: float = Field(0.0, ge=0, le=1)  # lower clamp of the decay
+    max_decay: float = Field(0.9999, ge=0, le=1)  # upper clamp of the decay
+
+    @model_validator(mode="after")
+    def _clamps(self) -> EmaConfig:
+        if self.min_decay > self.max_decay:
+            raise ValueError(f"min_decay {self.min_decay} is above max_decay {self.max_decay}")
+        return self
 
 
 class TrainConfig(Frozen):
@@ -66,6 +79,17 @@ class TrainConfig(Frozen):
     model: ModelConfig = Field(default_factory=ModelConfig)  # policy architecture
     optim: OptimConfig = Field(default_factory=OptimConfig)  # optimiser and LR schedule
     ema: EmaConfig = Field(default_factory=EmaConfig)  # weight averaging
+
+    @field_validator("views")
+    @classmethod
+    def _views(cls, views: list[str] | None) -> list[str] | None:
+        if views is not None:
+            if not views:
+                raise ValueError("names no view (leave it out for all of the dataset's)")
+            twice = sorted({v for v in views if views.count(v) > 1})
+            if twice:
+                raise ValueError(f"names {', '.join(twice)} more than once")
+        return views
 
     @model_validator(mode="after")
     def _check(self) -> TrainConfig:

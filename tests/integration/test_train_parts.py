@@ -48,6 +48,24 @@ def test_bad_config_is_a_clear_error():
 
 
 @pytest.mark.parametrize(
+    ("override", "says"),
+    [  # each was taken, and failed at the optimiser's construction as a traceback or trained on
+        ("optim.lr=-1", "optim.lr: Input should be greater than 0"),
+        ("optim.betas=[0.9,1.5]", "optim.betas: each must be in [0, 1)"),
+        ("optim.weight_decay=-0.1", "optim.weight_decay: Input should be greater than or equal to 0"),
+        ("ema.max_decay=1.5", "ema.max_decay: Input should be less than or equal to 1"),
+        ("ema.min_decay=0.99", "ema: min_decay 0.99 is above max_decay 0.5"),
+        ("views=[F,F]", "views: names F more than once"),
+        ("views=[]", "views: names no view"),
+    ],
+)
+def test_settings_out_of_range_are_refused_naming_the_field(override, says):
+    extra = ["ema.max_decay=0.5"] if override.startswith("ema.min_decay") else []  # (the pair disagrees)
+    with pytest.raises(ConfigError, match=re.escape(says)):
+        load_train_config(None, [override, *extra], environ={})
+
+
+@pytest.mark.parametrize(
     ("spec", "says"),
     [
         ("tpu", "'tpu': not a device name"),
