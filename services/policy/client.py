@@ -100,6 +100,9 @@ class PolicyClient:
         max_message_mb: int = 16,
         keepalive_s: float = 5.0,
     ):
+        port = address.rpartition(":")[2]
+        if "://" not in address and port.isdigit() and int(port) > 65535:  # gRPC would take it modulo 65536
+            raise PolicyError(f"{address}: port {port} is beyond 65535", grpc.StatusCode.INVALID_ARGUMENT)
         self.address = address
         self.session_id = session_id
         self.timeout_s = timeout_s
@@ -149,7 +152,8 @@ class PolicyClient:
                 last = f"{exc.code().name}: {exc.details()}"
             if time.monotonic() + delay > deadline:
                 raise PolicyError(
-                    f"no policy server at {self.address} after {timeout_s:.0f}s ({last})", grpc.StatusCode.UNAVAILABLE
+                    f"no policy server at {self.address} after {timeout_s:.0f}s ({self._why_not(last)})",
+                    grpc.StatusCode.UNAVAILABLE,
                 )
             time.sleep(delay)
             delay = min(2 * delay, 1.0)
@@ -160,6 +164,19 @@ class PolicyClient:
             )
         self._wait_serving(deadline, timeout_s)
         return info
+
+    def _why_not(self, last: str) -> str:
+        """Why the channel cannot connect. A call that waits for the connection ends in
+        DEADLINE_EXCEEDED, which hides the reason; one that does not wait gets the channel's last
+        connection error (connection refused, a name that does not resolve, a bad address)."""
+        if not last.startswith("DEADLINE_EXCEEDED"):
+            return last
+        try:
+            self.stub.GetPolicyInfo(policy_pb2.PolicyInfoRequest(), timeout=1.0, metadata=self._metadata)
+        except grpc.RpcError as exc:
+            if exc.code() != grpc.StatusCode.DEADLINE_EXCEEDED:
+                return f"{exc.code().name}: {exc.details()}"
+        return last
 
     def _wait_serving(self, deadline: float, timeout_s: float) -> None:
         health = health_pb2_grpc.HealthStub(self.channel)

@@ -83,6 +83,7 @@ def test_eval_against_a_running_server_single_view_then_composed(tiny_checkpoint
         assert server.proc.poll() is None  # the same server answered both evaluations
     proc = viewscale("eval", "--server", server.address, "--out", str(tmp_path / "gone"))
     assert proc.returncode == 2 and "no policy server" in proc.stderr, proc.stderr[-2000:]
+    assert "Connection refused" in proc.stderr  # why, not only DEADLINE_EXCEEDED
 
 
 def test_the_expert_row_goes_through_the_same_path(tmp_path):

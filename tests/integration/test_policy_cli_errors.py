@@ -324,3 +324,16 @@ def test_in_process_says_which_workers_it_leaves_unused(tiny_checkpoint):
     warning, error = proc.stderr.strip().splitlines()
     assert warning == "warning: --in-process computes every view here; not used: 2 local workers, worker 127.0.0.1:7001"
     assert error.startswith("error: device 'tpu'")
+
+
+def test_the_client_says_why_it_cannot_connect():
+    """Its connect waits for the channel, so the last error was only DEADLINE_EXCEEDED; it now
+    asks once more without waiting and quotes the connection's own error. A port beyond 65535,
+    which gRPC would take modulo 65536 (99999 -> 34463), is refused before any connection."""
+    from services.policy.client import PolicyClient, PolicyError
+
+    closed = f"127.0.0.1:{free_tcp_port()}"
+    with pytest.raises(PolicyError, match=f"no policy server at {closed} after 1s .*Connection refused"):
+        PolicyClient(closed, connect_timeout_s=1.0)
+    with pytest.raises(PolicyError, match="127.0.0.1:99999: port 99999 is beyond 65535"):
+        PolicyClient("127.0.0.1:99999", connect_timeout_s=1.0)
