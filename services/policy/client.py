@@ -28,7 +28,7 @@ from grpc_health.v1 import health_pb2, health_pb2_grpc
 from services.core.tensors import encode_jpeg, to_tensor
 from services.pb import policy_pb2, policy_pb2_grpc
 from services.policy import POLICY_PROTO_VERSION
-from services.policy.transport import keepalive_channel_options, message_size_options
+from services.policy.transport import bad_port, keepalive_channel_options, message_size_options
 
 Image = bytes | np.ndarray  # JPEG bytes, or (H, W, 3) uint8 RGB
 
@@ -100,9 +100,8 @@ class PolicyClient:
         max_message_mb: int = 16,
         keepalive_s: float = 5.0,
     ):
-        port = address.rpartition(":")[2]
-        if "://" not in address and port.isdigit() and int(port) > 65535:  # gRPC would take it modulo 65536
-            raise PolicyError(f"{address}: port {port} is beyond 65535", grpc.StatusCode.INVALID_ARGUMENT)
+        if why := bad_port(address):
+            raise PolicyError(f"{address}: {why}", grpc.StatusCode.INVALID_ARGUMENT)
         self.address = address
         self.session_id = session_id
         self.timeout_s = timeout_s

@@ -8,6 +8,7 @@ from typing import Annotated, Literal, get_args
 from pydantic import BeforeValidator, Field, field_validator, model_validator
 
 from services.core.config import Frozen, LogLevel
+from services.policy.transport import bad_port
 
 # how a request's views are put on workers (WorkerPool.place; `viewscale serve --placement`)
 Placement = Literal["auto", "pack", "spread"]
@@ -94,6 +95,14 @@ class ServerConfig(Frozen):
     max_sessions: int = Field(256, ge=1)  # robot sessions kept (idle ones are forgotten first)
     max_message_mb: int = Field(16, ge=1)  # gRPC message size cap, both ways
     log_level: LogLevel = "INFO"  # logging level of the process
+
+    @field_validator("worker")
+    @classmethod
+    def _workers(cls, addresses: list[str]) -> list[str]:
+        for a in addresses:
+            if why := bad_port(a):
+                raise ValueError(f"{a}: {why}")
+        return addresses
 
     @field_validator("views")
     @classmethod

@@ -26,6 +26,19 @@ class ListenError(OSError):
 EXCLUSIVE_PORT = [("grpc.so_reuseport", 0)]
 
 
+def bad_port(target: str) -> str | None:
+    """Why a gRPC target to connect to has a port out of range, or None. gRPC takes a port beyond
+    65535 modulo 65536 without a word (99999 -> 34463): the call would go to another port. Targets:
+    host:port, [v6]:port, dns:///name:port, ipv4:A:P,B:P, ipv6:..., unix:path (no port)."""
+    if target.startswith(("unix:", "unix-abstract:")):
+        return None
+    for part in target.split(","):  # (a scheme before it changes nothing: the port ends each part)
+        port = part.rpartition(":")[2]
+        if port.isdigit() and int(port) > 65535:
+            return f"port {port} is beyond 65535"
+    return None
+
+
 def listen_on(server, address: str, credentials=None) -> int:
     """Bind a grpc (or grpc.aio) server made with EXCLUSIVE_PORT to ``address``; its port (port 0:
     any free one). ListenError naming the address and the reason when it cannot."""

@@ -337,3 +337,10 @@ def test_the_client_says_why_it_cannot_connect():
         PolicyClient(closed, connect_timeout_s=1.0)
     with pytest.raises(PolicyError, match="127.0.0.1:99999: port 99999 is beyond 65535"):
         PolicyClient("127.0.0.1:99999", connect_timeout_s=1.0)
+
+
+def test_a_worker_address_with_a_port_beyond_65535_is_refused(tiny_checkpoint):
+    """(it went to port 34463 and waited there for a worker)"""
+    proc = viewscale("serve", "--checkpoint", str(tiny_checkpoint), "--worker", "dns:///policy-worker:99999")
+    assert proc.returncode == 2 and "listening" not in proc.stdout, proc.stderr
+    assert "worker: dns:///policy-worker:99999: port 99999 is beyond 65535" in proc.stderr
