@@ -353,7 +353,7 @@ def evaluate(spec: EvalSpec, out: Path, progress: Callable[[str], None] = print)
         raise EvalError(f"--views names {', '.join(twice)} more than once")
     missing = [v for v in views or [] if v not in cameras]
     if missing and not spec.expert:
-        given = "--views" if spec.views else f"--views (default: the training views, {','.join(views or [])})"
+        given = "--views" if spec.views else f"--views (default: the policy's views, {','.join(views or [])})"
         raise EvalError(f"{given}: rig {rig} has no camera {', '.join(missing)}; its cameras: {', '.join(cameras)}")
     video_camera = spec.video_camera or (views[0] if views else cameras[0])
     if spec.video and video_camera not in cameras:  # (found out once every episode had run, before)

@@ -109,7 +109,7 @@ def test_eval_refuses_bad_input_with_one_line_before_starting_anything(tiny_chec
         ([*ck, "--episodes", "0"], "--episodes must be at least 1, got 0"),
         ([*ck, "--views", "F,XX"], "--views: rig three15 has no camera XX; its cameras: F, FL, FR"),
         ([*ck, "--views", "F,FL,F"], "--views names F more than once"),
-        ([*ck, "--rig", "front"], "--views (default: the training views, F,FL,FR): rig front has no camera FL, FR"),
+        ([*ck, "--rig", "front"], "--views (default: the policy's views, F,FL,FR): rig front has no camera FL, FR"),
         ([*ck, "--rig", "nosuch"], "--rig: unknown rig 'nosuch'"),
         (
             [*ck, "--video", "1", "--video-camera", "ZZ"],
