@@ -297,13 +297,18 @@ def _check(args: argparse.Namespace) -> int:
             print(f"error: --set {item!r} must look like SERVICE.KEY=VALUE (camera. or robot.)", file=sys.stderr)
             return 2
         overrides.setdefault(service, []).append(rest)
-    if not args.seconds > 0:
-        print(f"error: --seconds must be positive, got {args.seconds:g}", file=sys.stderr)
+    for flag, value in (("--seconds", args.seconds), ("--max-error-px", args.max_error_px)):
+        if not value > 0:  # (a limit of 0 or less would fail every real camera's calibration)
+            print(f"error: {flag} must be positive, got {value:g}", file=sys.stderr)
+            return 2
+    if not args.max_age_days >= 0:
+        print(f"error: --max-age-days must be 0 or more, got {args.max_age_days:g}", file=sys.stderr)
         return 2
-    parts = [p.strip() for p in args.only.split(",")] if args.only else ["cameras", "calibration", "robot"]
-    unknown = sorted(set(parts) - {"cameras", "calibration", "robot"})
-    if unknown:
-        print(f"error: --only {', '.join(unknown)}: choose from cameras, calibration, robot", file=sys.stderr)
+    every = ["cameras", "calibration", "robot"]
+    parts = every if args.only is None else [p.strip() for p in args.only.split(",") if p.strip()]
+    unknown = sorted(set(parts) - set(every))
+    if unknown or not parts:
+        print(f"error: --only {', '.join(unknown) or args.only}: choose from {', '.join(every)}", file=sys.stderr)
         return 2
     try:
         findings = run_check(

@@ -68,9 +68,16 @@ def test_bad_arguments_are_one_error_line(tmp_path):
     proc = viewscale("check", "--config", str(sim_config(tmp_path)), "--only", "cameras,wheels")
     assert proc.returncode == 2
     assert proc.stderr.strip().splitlines() == ["error: --only wheels: choose from cameras, calibration, robot"]
-    proc = viewscale("check", "--config", str(sim_config(tmp_path)), "--seconds", "0")  # was 7 FAIL lines
-    assert proc.returncode == 2
-    assert proc.stderr.strip().splitlines() == ["error: --seconds must be positive, got 0"]
+    for args, says in [
+        (["--seconds", "0"], "error: --seconds must be positive, got 0"),  # was 7 FAIL lines
+        # taken before; on a real rig every camera's calibration would have failed
+        (["--max-error-px", "-1"], "error: --max-error-px must be positive, got -1"),
+        (["--max-age-days", "-3"], "error: --max-age-days must be 0 or more, got -3"),
+        (["--only", ","], "error: --only ,: choose from cameras, calibration, robot"),  # was '--only : ...'
+    ]:
+        proc = viewscale("check", "--config", str(sim_config(tmp_path)), *args)
+        assert proc.returncode == 2
+        assert proc.stderr.strip().splitlines() == [says]
     proc = viewscale("check", "--config", str(tmp_path / "missing.yaml"))
     assert proc.returncode == 2
     assert proc.stderr.strip().startswith("error: config file") and "Traceback" not in proc.stderr
