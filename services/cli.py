@@ -160,6 +160,7 @@ def _rerender(args: argparse.Namespace) -> int:
     os.environ.setdefault("MUJOCO_GL", "egl")
     from services.core.config import ConfigError
     from services.core.runtime import OutputError, writable_dir
+    from services.dataset.build import find_episodes
     from services.dataset.store import DatasetError
     from sim.rerender import rerender
 
@@ -169,6 +170,7 @@ def _rerender(args: argparse.Namespace) -> int:
         if any(Path(p).is_dir() and Path(p).resolve() == out.resolve() for p in args.raw):
             # its episodes would be read back as recordings: the next run re-renders the re-renders
             raise ConfigError(f"--out {out} is a --raw folder: write the re-rendered episodes to another one")
+        find_episodes([Path(p) for p in args.raw])  # a wrong --raw: no empty --out folder left behind
         writable_dir(out, "--out")
         result = rerender(
             [Path(p) for p in args.raw],

@@ -187,3 +187,6 @@ def test_rerender_refuses_bad_arguments_before_writing_anything(sim_dataset, tmp
         err = capsys.readouterr().err
         assert says in err and "Traceback" not in err, (extra, err)
     assert sorted(p.name for p in raw.iterdir()) == before and not (tmp_path / "rr").exists()
+    # a --raw with no episodes: it made --out first and left it there, empty
+    assert main(["rerender", "--raw", str(tmp_path / "none"), "--rig", "three30", "--out", str(tmp_path / "rr")]) == 2
+    assert "raw data path" in capsys.readouterr().err and not (tmp_path / "rr").exists()
