@@ -51,6 +51,7 @@ def _stop_on_signals(stop: threading.Event, announce: bool):
 def _train(args: argparse.Namespace) -> int:
     from services.core.config import ConfigError
     from services.core.runtime import OutputError, writable_dir
+    from services.dataset.store import DatasetError, DatasetStore
     from services.policy.checkpoint import CheckpointError, latest_checkpoint
     from services.trainer.config import load_train_config
     from services.trainer.train import TrainingError, dist_env, train
@@ -77,10 +78,11 @@ def _train(args: argparse.Namespace) -> int:
     cfg = None
     try:
         cfg = load_train_config(args.config, [*overrides, *args.set])
-        writable_dir(cfg.out, "--out")  # before the dataset is opened and the model built
+        DatasetStore(cfg.data)  # a wrong --data: one line, and no empty run folder left behind
+        writable_dir(cfg.out, "--out")  # before the dataset is loaded and the model built
         with _stop_on_signals(stop, announce=dist_env()[0] == 0):
             result = train(cfg, stop=stop)
-    except (ConfigError, TrainingError, CheckpointError, OutputError) as exc:
+    except (ConfigError, DatasetError, TrainingError, CheckpointError, OutputError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

@@ -451,3 +451,10 @@ def test_an_unwritable_out_is_one_error_line_before_training(sim_dataset, tmp_pa
     rc = viewscale(["train", "--data", str(sim_dataset), "--out", str(blocker / "run"), "--steps", "1"])
     err = capsys.readouterr().err
     assert rc == 2 and err.strip() == f"error: --out {blocker / 'run'}: not a directory ({blocker} is a file)"
+
+
+def test_a_wrong_data_folder_is_one_error_line_and_leaves_no_run_folder(tmp_path, capsys):
+    """(it made --out first and left it there, empty)"""
+    rc = viewscale(["train", "--data", str(tmp_path / "nowhere"), "--out", str(tmp_path / "run")])
+    assert rc == 2 and capsys.readouterr().err.strip() == f"error: dataset {tmp_path / 'nowhere'} does not exist"
+    assert not (tmp_path / "run").exists()
