@@ -44,6 +44,20 @@ def _load(model, args: argparse.Namespace, flags: list[str], section: str):
     return cfg
 
 
+def _empty_token(args: argparse.Namespace) -> str | None:
+    """Why the token given is empty, or None. An empty value reads as no value, so an unset
+    variable (VIEWSCALE_TOKEN=$TOKEN with TOKEN unset) would turn the token check off in silence."""
+    import os
+
+    if "VIEWSCALE_TOKEN" in os.environ and not os.environ["VIEWSCALE_TOKEN"].strip():
+        return "VIEWSCALE_TOKEN is set but empty (an unset variable?): give the token, or unset it for none"
+    for item in args.set:
+        key, _, value = item.partition("=")
+        if key.strip() == "token" and not value.strip():
+            return f"--set {item}: the token is empty; give one, or leave it out for none"
+    return None
+
+
 def _run(coro_factory) -> int:
     from services.core.runtime import die_with_parent
 
@@ -75,6 +89,8 @@ def _serve(args: argparse.Namespace) -> int:
         args.views = [v.strip() for v in args.views.split(",") if v.strip()]
         if not args.views:
             return _error("--views names no camera (leave it out for the training views)")
+    if why := _empty_token(args):
+        return _error(why)
     flags = ["checkpoint", "listen", "views", "workers", "worker", "in_process", "placement", "device", "threads"]
     flags += ["precision", "rig", "task"]
     cfg = _load(ServerConfig, args, flags, "policy")
@@ -122,6 +138,8 @@ def _serve(args: argparse.Namespace) -> int:
 def _worker(args: argparse.Namespace) -> int:
     from services.policy.config import WorkerConfig
 
+    if why := _empty_token(args):
+        return _error(why)
     cfg = _load(WorkerConfig, args, ["checkpoint", "listen", "device", "threads", "precision"], "worker")
     if cfg is None:
         return 2

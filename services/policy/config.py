@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Annotated, Literal, get_args
 
-from pydantic import BeforeValidator, Field, field_validator, model_validator
+from pydantic import AfterValidator, BeforeValidator, Field, field_validator, model_validator
 
 from services.core.config import Frozen, LogLevel
 from services.policy.transport import bad_port
@@ -30,6 +30,22 @@ def _host_port(value: object) -> str:
 
 # where a server listens: host:port (a name, an IPv4 address, or [IPv6])
 Listen = Annotated[str, BeforeValidator(_host_port)]
+
+
+def _token(value: str | None) -> str | None:
+    if value is not None and not value.strip():  # (it would turn the check off without a word)
+        raise ValueError("is empty: give one, or leave it out for none")
+    return value
+
+
+# a bearer token; never "" (an empty one would mean: no token)
+Token = Annotated[str | None, AfterValidator(_token)]
+
+
+def open_to_others(listen: str) -> bool:
+    """Whether host:port listens beyond this machine's loopback."""
+    host = listen.rpartition(":")[0].strip("[]")
+    return host not in ("127.0.0.1", "localhost", "::1") and not host.startswith("127.")
 
 
 class TlsConfig(Frozen):
@@ -62,7 +78,7 @@ class WorkerConfig(Frozen):
     max_batch: int = Field(64, ge=1)  # items at most in one forward pass
     max_streams: int = Field(256, ge=1)  # Denoise streams at once (a thread each); more: RESOURCE_EXHAUSTED
     group_wait_ms: float = Field(50.0, gt=0)  # longest a view waits for its request's other views here
-    token: str | None = None  # bearer token callers must present (the server's)
+    token: Token = None  # bearer token callers must present (the server's)
     tls: TlsConfig = TlsConfig()  # serve over TLS
     max_message_mb: int = Field(16, ge=1)  # gRPC message size cap, both ways
     log_level: LogLevel = "INFO"  # logging level of the process
@@ -85,7 +101,7 @@ class ServerConfig(Frozen):
     # bf16: the model's passes under bfloat16 autocast, in-process and in local workers; workers
     # that compute otherwise are not admitted (their answers would differ from the server's setting)
     precision: Precision = "fp32"
-    token: str | None = None  # bearer token: clients (and this server to its workers) present it
+    token: Token = None  # bearer token: clients (and this server to its workers) present it
     tls: TlsConfig = TlsConfig()  # serve over TLS
     request_timeout_s: float = Field(5.0, gt=0)  # deadline of a GetAction whose call carries none
     worker_ready_s: float = Field(120.0, gt=0)  # how long to wait for the first worker to be ready

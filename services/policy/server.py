@@ -62,7 +62,7 @@ from services.policy.aggregation import (
     view_transform,
 )
 from services.policy.checkpoint import checkpoint_sha256, model_id, read_info
-from services.policy.config import PLACEMENTS
+from services.policy.config import PLACEMENTS, open_to_others
 from services.policy.model.diffusion import make_inference_scheduler
 from services.policy.model.policy import NoiseConfig
 from services.policy.observation import CameraSpec, InvalidRequest, Parsed, PolicySpec, model_inputs, parse
@@ -1131,6 +1131,12 @@ async def serve_policy(cfg, stop: asyncio.Event, worker_addresses: list[str], an
     address = f"{cfg.listen.rsplit(':', 1)[0]}:{port}"
     await server.start()
     announce(f"listening policy {address}")
+    if open_to_others(cfg.listen) and not cfg.token:
+        log.warning(
+            "%s is open beyond loopback with no token: whoever reaches it can call GetAction "
+            "(set VIEWSCALE_TOKEN, here and in the clients)",
+            address,
+        )
     loop = asyncio.get_running_loop()
     engine = pool = None
     try:  # whatever fails while starting, the server is stopped before the loop closes

@@ -52,7 +52,7 @@ from grpc_reflection.v1alpha import reflection
 from services.core.tensors import from_tensor, to_tensor
 from services.pb import policy_pb2, policy_pb2_grpc
 from services.policy.checkpoint import LoadedPolicy, checkpoint_sha256, inference_device, load_policy, model_id
-from services.policy.config import PRECISIONS
+from services.policy.config import PRECISIONS, open_to_others
 from services.policy.model.fastpath import cast_matmul_weights
 from services.policy.transport import EXCLUSIVE_PORT, keepalive_server_options, listen_on, message_size_options
 
@@ -597,6 +597,12 @@ async def serve_worker(cfg, stop: asyncio.Event, announce=print) -> int:
     address = f"{host}:{port}"
     server.start()
     announce(f"listening worker {address}")
+    if open_to_others(cfg.listen) and not cfg.token:
+        log.warning(
+            "%s is open beyond loopback with no token: whoever reaches it can run denoising passes "
+            "(set VIEWSCALE_TOKEN, here and in the server)",
+            address,
+        )
     loop = asyncio.get_running_loop()
     try:
         engine = await loop.run_in_executor(

@@ -344,3 +344,23 @@ def test_a_worker_address_with_a_port_beyond_65535_is_refused(tiny_checkpoint):
     proc = viewscale("serve", "--checkpoint", str(tiny_checkpoint), "--worker", "dns:///policy-worker:99999")
     assert proc.returncode == 2 and "listening" not in proc.stdout, proc.stderr
     assert "worker: dns:///policy-worker:99999: port 99999 is beyond 65535" in proc.stderr
+
+
+@pytest.mark.parametrize("how", ["env", "set", "yaml"])
+def test_an_empty_token_is_refused_not_taken_for_none(tiny_checkpoint, tmp_path, how):
+    """An empty value reads as no value: VIEWSCALE_TOKEN=$TOKEN with TOKEN unset, or `--set token=`,
+    started the worker (or server) with no token check at all, without a word."""
+    args, env = ["worker", "--checkpoint", str(tiny_checkpoint)], user_env()
+    if how == "env":
+        env["VIEWSCALE_TOKEN"] = ""
+    elif how == "set":
+        args += ["--set", "token="]
+    else:
+        (tmp_path / "w.yaml").write_text('worker:\n  token: ""\n')
+        args += ["--config", str(tmp_path / "w.yaml")]
+    proc = subprocess.run(
+        [sys.executable, "-m", "services.cli", *args], cwd=ROOT, capture_output=True, text=True, env=env, timeout=60
+    )
+    assert proc.returncode == 2 and "listening" not in proc.stdout, proc.stderr
+    [line] = proc.stderr.strip().splitlines()
+    assert line.startswith("error: ") and "empty" in line and "token" in line.lower(), line

@@ -87,3 +87,13 @@ def test_log_level_takes_any_case_and_refuses_a_name_that_is_no_level(capsys):
     with pytest.raises(SystemExit) as exc:
         build_parser().parse_args(["--log-level", "verbose", "collect"])
     assert exc.value.code == 2 and "argument --log-level: 'verbose' is not a logging level" in capsys.readouterr().err
+
+
+def test_an_address_open_beyond_loopback_is_told_apart():
+    """serve and worker warn when they listen beyond loopback with no token."""
+    from services.policy.config import open_to_others
+
+    for loopback in ("127.0.0.1:50051", "localhost:0", "[::1]:7001", "127.0.1.1:80"):
+        assert not open_to_others(loopback), loopback
+    for open_ in ("0.0.0.0:50051", "[::]:7001", "10.0.0.5:7001", "policy-worker:7001"):
+        assert open_to_others(open_), open_
