@@ -34,6 +34,12 @@ class ConfigError(ValueError):
 LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL")
 
 
+def named_twice(names: Iterable[str]) -> list[str]:
+    """The names given more than once, sorted (a view list's typo: ``F,FL,F``)."""
+    names = list(names)
+    return sorted({n for n in names if names.count(n) > 1})
+
+
 def log_level_name(value: str) -> str:
     """``"info"`` -> ``"INFO"``; a name that is not a logging level is an error (not INFO in silence)."""
     name = str(value).strip().upper()

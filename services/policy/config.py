@@ -7,7 +7,7 @@ from typing import Annotated, Literal, get_args
 
 from pydantic import AfterValidator, BeforeValidator, Field, field_validator, model_validator
 
-from services.core.config import Frozen, LogLevel
+from services.core.config import Frozen, LogLevel, named_twice
 from services.policy.transport import bad_port
 
 # how a request's views are put on workers (WorkerPool.place; `viewscale serve --placement`)
@@ -126,7 +126,7 @@ class ServerConfig(Frozen):
         if views is not None:
             if not views:
                 raise ValueError("names no camera (leave it out for the training views)")
-            twice = sorted({v for v in views if views.count(v) > 1})
+            twice = named_twice(views)
             if twice:
                 raise ValueError(f"names {', '.join(twice)} more than once")
         return views

@@ -35,7 +35,7 @@ from pathlib import Path
 from typing import Any
 
 from services.core.bus import Bus
-from services.core.config import ConfigError
+from services.core.config import ConfigError, named_twice
 from services.core.rig import load_rig
 from services.core.runtime import OutputError, child_env, writable_dir
 from services.core.stats import percentile, wilson
@@ -348,7 +348,7 @@ def evaluate(spec: EvalSpec, out: Path, progress: Callable[[str], None] = print)
         cameras = list(load_rig(rig).cameras)  # a typo in --rig: one line now, not from the sim later
     except ConfigError as exc:
         raise EvalError(f"--rig: {exc}") from None
-    twice = sorted({v for v in views or [] if views.count(v) > 1})
+    twice = named_twice(views or [])
     if twice:
         raise EvalError(f"--views names {', '.join(twice)} more than once")
     missing = [v for v in views or [] if v not in cameras]
