@@ -356,10 +356,18 @@ class ChunkRunner:
         on_error=None,
     ):
         info = client.info
+        most = int(info.pred_horizon) - int(info.obs_horizon) + 1  # a chunk's actions from start_index on
+        if control_hz is not None and not control_hz > 0:
+            raise ValueError(f"control_hz must be positive, got {control_hz}")
+        if n_action_steps is not None and not 1 <= n_action_steps <= most:
+            # (0 fell back to the policy's own; a negative count executed nothing, ever)
+            raise ValueError(f"n_action_steps must be 1..{most} for this policy (Tp - To + 1), got {n_action_steps}")
+        if margin_ticks < 0:
+            raise ValueError(f"margin_ticks must be 0 or more, got {margin_ticks}")
         self.client = client
         self.To = int(info.obs_horizon)
-        self.n_action_steps = int(n_action_steps or info.n_action_steps)
-        self.hz = float(control_hz or info.control_hz)
+        self.n_action_steps = int(n_action_steps if n_action_steps is not None else info.n_action_steps)
+        self.hz = float(control_hz if control_hz is not None else info.control_hz)
         self.blocking = blocking
         self.views = list(views) if views else None
         self.gamma = dict(gamma) if gamma else None

@@ -4,6 +4,7 @@ checkpoint trained on the session's sim dataset, the robot-side client."""
 from __future__ import annotations
 
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -810,6 +811,14 @@ def test_the_chunk_runner_executes_chunks_drops_stale_actions_and_never_blocks(c
         frames, states = observations[0]
         now = {c: f[-1] for c, f in frames.items()}
         with PolicyClient(addr, session_id="runner") as client:
+            for bad, says in [
+                (dict(control_hz=0), "control_hz must be positive, got 0"),
+                (dict(n_action_steps=0), "n_action_steps must be 1..15 for this policy (Tp - To + 1), got 0"),
+                (dict(n_action_steps=16), "got 16"),
+                (dict(margin_ticks=-1), "margin_ticks must be 0 or more"),
+            ]:
+                with pytest.raises(ValueError, match=re.escape(says)):
+                    ChunkRunner(client, **bad)
             lockstep = ChunkRunner(client, blocking=True, seed=0)
             got = [lockstep.act(t, now, states[-1]) for t in range(20)]
             assert all(fresh for _, fresh in got) and lockstep.stats.underruns == 0
