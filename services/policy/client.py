@@ -102,6 +102,13 @@ class PolicyClient:
     ):
         if why := bad_port(address):
             raise PolicyError(f"{address}: {why}", grpc.StatusCode.INVALID_ARGUMENT)
+        for name, value in (("timeout_s", timeout_s), ("connect_timeout_s", connect_timeout_s)):
+            if not value > 0:
+                raise ValueError(f"{name} must be positive, got {value}")
+        if not 0 <= jpeg_quality <= 100:
+            raise ValueError(f"jpeg_quality must be 0 (raw RGB) to 100, got {jpeg_quality}")
+        if max_message_mb < 1:
+            raise ValueError(f"max_message_mb must be at least 1, got {max_message_mb}")
         self.address = address
         self.session_id = session_id
         self.timeout_s = timeout_s

@@ -364,3 +364,20 @@ def test_an_empty_token_is_refused_not_taken_for_none(tiny_checkpoint, tmp_path,
     assert proc.returncode == 2 and "listening" not in proc.stdout, proc.stderr
     [line] = proc.stderr.strip().splitlines()
     assert line.startswith("error: ") and "empty" in line and "token" in line.lower(), line
+
+
+@pytest.mark.parametrize(
+    "kw, says",
+    [
+        (dict(timeout_s=0), "timeout_s must be positive, got 0"),
+        (dict(connect_timeout_s=-1), "connect_timeout_s must be positive, got -1"),
+        (dict(jpeg_quality=101), "jpeg_quality must be 0 (raw RGB) to 100, got 101"),
+        (dict(max_message_mb=0), "max_message_mb must be at least 1, got 0"),
+    ],
+)
+def test_the_client_refuses_settings_out_of_range_before_connecting(kw, says):
+    """(all were taken before; a call's timeout of 0 is a deadline already passed)"""
+    from services.policy.client import PolicyClient
+
+    with pytest.raises(ValueError, match=re.escape(says)):
+        PolicyClient(f"127.0.0.1:{free_tcp_port()}", **kw)
