@@ -74,6 +74,8 @@ class BuildParams:
             raise DatasetError(f"image size {w}x{h} is too small")
         if not 0.0 <= self.val_fraction < 1.0:
             raise DatasetError(f"val_fraction must be in [0, 1), got {self.val_fraction}")
+        if self.max_frame_age_ms is not None and not self.max_frame_age_ms > 0:  # (it dropped every frame)
+            raise DatasetError(f"max_frame_age_ms must be positive, got {self.max_frame_age_ms}")
         if not self.max_calibration_age_days > 0:
             raise DatasetError(f"max_calibration_age_days must be positive, got {self.max_calibration_age_days}")
         if self.pad_actions not in ("edge", "hold"):
@@ -502,7 +504,7 @@ def _fit_normalizer(out: Path, episodes: list[dict[str, Any]], views: tuple[str,
             stats.add_actions(np.load(d / f"{v}.action.npy"))
             stats.add_states(np.load(d / f"{v}.state.npy"))
     if stats.state_min is None:
-        raise DatasetError("no samples: every tick was dropped (see the drop counts with --verbose)")
+        raise DatasetError("no samples: every tick was dropped (each episode's line above says why)")
     return stats.normalizer(STATE_NAMES)
 
 

@@ -66,6 +66,8 @@ def _build(args: argparse.Namespace) -> int:
         )
         if args.jobs < 1:
             raise DatasetError(f"--jobs must be at least 1, got {args.jobs}")
+        if args.contact_episodes < 0:
+            raise DatasetError(f"--contact-episodes must be 0 or more, got {args.contact_episodes}")
         find_episodes([Path(p) for p in args.raw])  # a wrong --raw: no empty --out folder left behind
         writable_dir(args.out, "--out")  # before an hour of decoding, not after
         result = build_dataset(

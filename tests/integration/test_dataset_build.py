@@ -288,6 +288,8 @@ def test_bad_input_gets_a_clear_error_naming_the_file_or_view(tmp_path):
         build_dataset(raw, tmp_path / "x", BuildParams(views=("FX",), image_size=(32, 24)))
     with pytest.raises(DatasetError, match="empty view selection"):
         BuildParams(views=())
+    with pytest.raises(DatasetError, match="max_frame_age_ms must be positive, got -5"):
+        BuildParams(views=("F",), max_frame_age_ms=-5)  # (it was taken, and dropped every frame as stale)
     with pytest.raises(DatasetError, match="does not exist"):
         build_dataset(tmp_path / "nowhere", out, BuildParams(views=("F",)))
     with pytest.raises(DatasetError, match="no episode files"):
@@ -363,7 +365,11 @@ def test_cli_build_and_info(raw_dir, tmp_path, capsys):
     assert "episodes      3" in info and "F, FR" in info and "pos_scale" in info
     assert viewscale(["dataset", "info", str(out), "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["samples"] > 0
-    for argv, needle in ((["--views", "F,NOPE"], "'NOPE'"), (["--views", ","], "empty view selection")):
+    for argv, needle in (
+        (["--views", "F,NOPE"], "'NOPE'"),
+        (["--views", ","], "empty view selection"),
+        (["--views", "F", "--contact-episodes", "-1"], "--contact-episodes must be 0 or more, got -1"),
+    ):
         rc = viewscale(
             ["dataset", "build", "--raw", str(raw_dir), "--out", str(tmp_path / "bad"), "--jobs", "1", *argv]
         )
