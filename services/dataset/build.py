@@ -617,6 +617,17 @@ def build_dataset(
     norm.save(out / NORMALIZER)
     meta = _meta(params, got.episodes, train, val)
     _write_json(out / META, meta)
+    w, h = params.image_size
+    smaller = [
+        f"{v} {c['source_width']}x{c['source_height']}"
+        for v, c in meta["cameras"].items()
+        if c and (w > c["source_width"] or h > c["source_height"])
+    ]
+    if smaller:  # (2000x2000 from 84x84 frames: 1.1 GB for 97 frames, no detail gained)
+        progress(
+            f"warning: image size {w}x{h} is larger than the recorded frames ({', '.join(smaller)}): "
+            "they are upscaled, which adds no detail and costs disk and memory"
+        )
     summary = summarise(out, params, got.episodes, norm, got.skipped, (train, val))
     summary["build_s"] = round(time.perf_counter() - t0, 3)
     _write_json(out / SUMMARY, summary)
