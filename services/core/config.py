@@ -40,6 +40,17 @@ def named_twice(names: Iterable[str]) -> list[str]:
     return sorted({n for n in names if names.count(n) > 1})
 
 
+def checked_names(names: list[str] | None, if_empty: str) -> list[str] | None:
+    """A config's list of camera names: None (its default), or at least one name, each given once;
+    ValueError otherwise (``if_empty``: the message for an empty list, saying what leaving it out gives)."""
+    if names is not None:
+        if not names:
+            raise ValueError(if_empty)
+        if twice := named_twice(names):
+            raise ValueError(f"names {', '.join(twice)} more than once")
+    return names
+
+
 def log_level_name(value: str) -> str:
     """``"info"`` -> ``"INFO"``; a name that is not a logging level is an error (not INFO in silence)."""
     name = str(value).strip().upper()

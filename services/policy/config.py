@@ -7,7 +7,7 @@ from typing import Annotated, Literal, get_args
 
 from pydantic import AfterValidator, BeforeValidator, Field, field_validator, model_validator
 
-from services.core.config import Frozen, LogLevel, named_twice
+from services.core.config import Frozen, LogLevel, checked_names
 from services.policy.transport import bad_port
 
 # how a request's views are put on workers (WorkerPool.place; `viewscale serve --placement`)
@@ -123,10 +123,4 @@ class ServerConfig(Frozen):
     @field_validator("views")
     @classmethod
     def _views(cls, views: list[str] | None) -> list[str] | None:
-        if views is not None:
-            if not views:
-                raise ValueError("names no camera (leave it out for the training views)")
-            twice = named_twice(views)
-            if twice:
-                raise ValueError(f"names {', '.join(twice)} more than once")
-        return views
+        return checked_names(views, "names no camera (leave it out for the training views)")

@@ -15,7 +15,7 @@ from typing import Any, Literal
 from pydantic import Field, field_validator, model_validator
 
 from services.core.bus import BusConfig
-from services.core.config import ConfigError, Frozen, LogLevel, load_config, named_twice, validate_config
+from services.core.config import ConfigError, Frozen, LogLevel, checked_names, load_config, validate_config
 from services.policy.model.policy import ModelConfig
 from services.policy.model.presets import PRESETS, preset
 
@@ -83,13 +83,7 @@ class TrainConfig(Frozen):
     @field_validator("views")
     @classmethod
     def _views(cls, views: list[str] | None) -> list[str] | None:
-        if views is not None:
-            if not views:
-                raise ValueError("names no view (leave it out for all of the dataset's)")
-            twice = named_twice(views)
-            if twice:
-                raise ValueError(f"names {', '.join(twice)} more than once")
-        return views
+        return checked_names(views, "names no view (leave it out for all of the dataset's)")
 
     @model_validator(mode="after")
     def _check(self) -> TrainConfig:
