@@ -170,10 +170,10 @@ def _rerender(args: argparse.Namespace) -> int:
         if any(Path(p).is_dir() and Path(p).resolve() == out.resolve() for p in args.raw):
             # its episodes would be read back as recordings: the next run re-renders the re-renders
             raise ConfigError(f"--out {out} is a --raw folder: write the re-rendered episodes to another one")
-        find_episodes([Path(p) for p in args.raw])  # a wrong --raw: no empty --out folder left behind
+        episodes = find_episodes([Path(p) for p in args.raw])  # a wrong --raw: no empty --out left behind
         writable_dir(out, "--out")
         result = rerender(
-            [Path(p) for p in args.raw],
+            episodes,  # (the files found: the folders are not walked again)
             args.rig,
             Path(args.out),
             args.size,

@@ -68,10 +68,10 @@ def _build(args: argparse.Namespace) -> int:
             raise DatasetError(f"--jobs must be at least 1, got {args.jobs}")
         if args.contact_episodes < 0:
             raise DatasetError(f"--contact-episodes must be 0 or more, got {args.contact_episodes}")
-        find_episodes([Path(p) for p in args.raw])  # a wrong --raw: no empty --out folder left behind
+        episodes = find_episodes([Path(p) for p in args.raw])  # a wrong --raw: no empty --out left behind
         writable_dir(args.out, "--out")  # before an hour of decoding, not after
         result = build_dataset(
-            [Path(p) for p in args.raw],
+            episodes,  # (the files found: the folders are not walked again)
             Path(args.out),
             params,
             progress=progress,
