@@ -476,7 +476,7 @@ class WorkerPool:
         return out
 
     async def wait_ready(
-        self, n: int, timeout: float, stop: asyncio.Event | None = None, first_say_s: float = 5.0, say_s: float = 15.0
+        self, n: int, timeout: float, stop: asyncio.Event, first_say_s: float = 5.0, say_s: float = 15.0
     ) -> bool:
         """Until ``n`` workers are healthy (True), or ``stop`` is set first (False: a SIGTERM or
         Ctrl-C while waiting ends the server now, not after ``timeout``). While it waits it logs
@@ -485,7 +485,7 @@ class WorkerPool:
         start = time.monotonic()
         say_at = start + first_say_s
         while len(self.healthy) < n:
-            if stop is not None and stop.is_set():
+            if stop.is_set():
                 return False
             now = time.monotonic()
             if now > start + timeout:
@@ -502,11 +502,8 @@ class WorkerPool:
                 )
                 say_at = now + say_s
             await self.check_all(only_unhealthy=True)
-            if stop is None:
-                await asyncio.sleep(0.1)
-            else:
-                with contextlib.suppress(TimeoutError):
-                    await asyncio.wait_for(stop.wait(), 0.1)
+            with contextlib.suppress(TimeoutError):  # (a stop ends the wait at once)
+                await asyncio.wait_for(stop.wait(), 0.1)
         return True
 
     def _not_ready(self) -> str:
