@@ -48,8 +48,6 @@ def write_credentials(out: Path, users: Iterable[str] = SERVICE_USERS, force: bo
             raise ValueError(f"user name {user!r}: must be non-empty, without ':', '/' or surrounding spaces")
     if not users:
         raise ValueError("no users to write credentials for")
-    if out.exists() and not out.is_dir():
-        raise ValueError(f"--out {out}: not a directory (the credentials are a folder of files)")
     existing = [p for p in [out / USERS_FILE, *(password_path(out, u) for u in users)] if p.exists()]
     if existing and not force:
         raise FileExistsError(
