@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
+import math
 import os
 import signal
 import sys
@@ -234,6 +235,14 @@ def _episode(args: argparse.Namespace) -> int:
     from services.core.bus import Bus, BusConfig
     from services.recorder.control import describe_reply, episode_control, episode_request
 
+    for flag, value in (("--timeout", args.timeout), ("--hz", args.hz)):
+        if not 0 < value < math.inf:  # a timeout of -1 would be zenoh's "forever"; nan or inf: no number at all
+            print(
+                f"error: {flag} must be a positive number of {'seconds' if flag == '--timeout' else 'Hz'}, "
+                f"got {value:g}",
+                file=sys.stderr,
+            )
+            return 2
     req = episode_request(
         args.action,
         episode_id=args.id,

@@ -40,7 +40,9 @@ class BusConfig(Frozen):
     connect: list[str] = Field(default_factory=list)  # endpoints to connect to (a router or peer)
     multicast_scouting: bool = False  # off by default: sessions find each other only via `connect`
     namespace: str = "vs"  # prefix of every key expression, so sessions can share a network
-    connect_timeout_s: float = 30.0  # keep retrying `connect` endpoints this long at start-up (router still booting)
+    # keep retrying `connect` endpoints this long at start-up (router still booting); zenoh reads a
+    # negative timeout as "forever", so it must be a positive number
+    connect_timeout_s: float = Field(30.0, gt=0, allow_inf_nan=False)
     user: str | None = None  # authenticate to the router as this user (zenoh user/password); None: no authentication
     password_file: Path | None = None  # file whose first line is `user`'s password (a compose secret); never logged
     acl_file: Path | None = None  # router only: zenoh JSON5 with the `access_control` it enforces, per user

@@ -6,6 +6,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[2]
 
 
@@ -61,3 +63,36 @@ def test_no_router_is_one_error_line(tmp_path):
     proc = cli(f"tcp/127.0.0.1:{free_tcp_port()}", "status", "--timeout", "1")
     assert proc.returncode == 2
     assert proc.stderr.startswith("error: cannot open a Zenoh client session") and "Traceback" not in proc.stderr
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (("--timeout", "-1"), "--timeout must be a positive number of seconds, got -1"),  # was: waited forever
+        (("--timeout", "0"), "--timeout must be a positive number of seconds, got 0"),
+        (("--timeout", "nan"), "--timeout must be a positive number of seconds, got nan"),
+        (("--hz", "0"), "--hz must be a positive number of Hz, got 0"),
+        (("--hz", "inf"), "--hz must be a positive number of Hz, got inf"),
+    ],
+)
+def test_a_bad_timeout_or_rate_is_refused_before_connecting(args, message):
+    from services.core.bus import free_tcp_port
+
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "services.cli",
+            "episode",
+            "start",
+            "--connect",
+            f"tcp/127.0.0.1:{free_tcp_port()}",
+            *args,
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=20,  # no router listens: a negative timeout used to mean zenoh's "retry forever"
+    )
+    assert proc.returncode == 2
+    assert proc.stderr.strip() == f"error: {message}"

@@ -25,6 +25,13 @@ def test_the_default_bus_is_unauthenticated():
     assert (cfg.user, cfg.password_file, cfg.acl_file, cfg.users_file) == (None, None, None, None)
 
 
+@pytest.mark.parametrize("value", [0, -1, float("nan"), float("inf")])
+def test_the_connect_timeout_is_a_positive_number_of_seconds(value):
+    # zenoh reads a negative connect timeout as "retry forever": a service would hang without a word
+    with pytest.raises(ValidationError, match="connect_timeout_s"):
+        BusConfig(mode="client", connect=["tcp/127.0.0.1:7447"], connect_timeout_s=value)
+
+
 @pytest.mark.parametrize(
     "fields, message",
     [
