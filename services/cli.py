@@ -275,6 +275,9 @@ def _episode(args: argparse.Namespace) -> int:
 def _router(args: argparse.Namespace) -> int:
     from services.router.__main__ import main as router_main
 
+    if args.acl and not args.users:  # (checked here too: the module's parser would name itself, not viewscale)
+        print("error: --acl needs --users: its rules name users that must authenticate", file=sys.stderr)
+        return 2
     argv = sum((["--listen", e] for e in args.listen or []), [])
     argv += ["--users", args.users] if args.users else []
     argv += ["--acl", args.acl] if args.acl else []

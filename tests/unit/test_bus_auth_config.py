@@ -89,6 +89,14 @@ def test_the_router_refuses_an_acl_file_that_does_not_enable_access_control(tmp_
     assert len(err) == 1 and "does not enable access control" in err[0]
 
 
+def test_viewscale_router_refuses_an_acl_without_users_in_its_own_name(tmp_path, capsys):
+    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+    assert viewscale(["router", "--listen", endpoint, "--acl", str(ACL)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    # one line, not the router module's usage text under the name `python -m services.router`
+    assert err == ["error: --acl needs --users: its rules name users that must authenticate"]
+
+
 def test_the_shipped_acl_names_exactly_the_service_users_and_every_rule_is_used():
     conf = zenoh.Config.from_file(str(ACL))
     acl = json.loads(conf.get_json("access_control"))
