@@ -133,8 +133,12 @@ def _print_board(args: argparse.Namespace) -> int:
                 "200 px per 40 mm square is 127 dpi, 472 is 300 dpi)"
             )
         out = Path(args.out)
+        if out.is_dir():
+            raise CalibrationError(f"--out {out} is a directory: name the image file, e.g. {out / 'board.png'}")
         if out.suffix.lower() not in (".png", ".bmp", ".tif", ".tiff"):
-            raise CalibrationError(f"--out {out}: write the board losslessly (.png), not {out.suffix or 'no suffix'}")
+            raise CalibrationError(
+                f"--out {out}: write the board losslessly (.png), not {out.suffix or 'a file without suffix'}"
+            )
         try:
             out.parent.mkdir(parents=True, exist_ok=True)
         except OSError as exc:

@@ -320,6 +320,11 @@ def test_board_image_is_written(tmp_path, capsys):
     assert viewscale(["calibrate", "board", "--out", str(tmp_path / "huge.png"), "--px-per-square", "100000"]) == 2
     assert "the board would be 800000x600000 px; at most 20000" in capsys.readouterr().err
     assert not (tmp_path / "huge.png").exists()
+    # a folder as --out (before: 'write the board losslessly (.png), not no suffix')
+    assert viewscale(["calibrate", "board", "--out", str(tmp_path / "new")]) == 2
+    assert f"--out {tmp_path / 'new'} is a directory: name the image file" in capsys.readouterr().err
+    assert viewscale(["calibrate", "board", "--out", str(tmp_path / "board")]) == 2
+    assert "write the board losslessly (.png), not a file without suffix" in capsys.readouterr().err
 
 
 # -- camera-space dataset builds refuse a missing or stale calibration ------------------------------
