@@ -30,6 +30,7 @@ def _collect(args: argparse.Namespace) -> int:
     from services.core.runtime import OutputError
     from services.session.collect import CollectError, collect
     from services.session.config import EVAL_SEED_FLOOR
+    from sim.config import MAX_CONTROL_HZ, MIN_CONTROL_HZ
 
     try:
         load_rig(args.rig)  # fail fast on a typo, before starting anything
@@ -37,8 +38,11 @@ def _collect(args: argparse.Namespace) -> int:
             raise ConfigError(f"unknown task {args.task!r}; tasks: lift, can, square")
         if args.episodes < 1:
             raise ConfigError(f"--episodes must be at least 1, got {args.episodes}")
-        if not args.hz > 0:
-            raise ConfigError(f"--hz must be positive, got {args.hz}")
+        if not MIN_CONTROL_HZ <= args.hz <= MAX_CONTROL_HZ:  # (before: the sim's traceback, or a hang at 1e-9)
+            raise ConfigError(
+                f"--hz must be {MIN_CONTROL_HZ:g}..{MAX_CONTROL_HZ:g} (the sim's physics steps every "
+                f"{1e3 / MAX_CONTROL_HZ:g} ms), got {args.hz:g}"
+            )
         if args.max_ticks is not None and args.max_ticks < 1:
             raise ConfigError(f"--max-ticks must be at least 1, got {args.max_ticks}")
         _check_size(args.size)

@@ -6,6 +6,10 @@ from services.core.bus import BusConfig
 from services.core.config import Frozen
 from services.robot.safety import SafetyConfig
 
+# The sim's control rates: at most one tick per physics step (sim.scene.TIMESTEP, 2 ms); below
+# 1 Hz an episode of a few hundred ticks would take hours of wall time.
+MIN_CONTROL_HZ, MAX_CONTROL_HZ = 1.0, 500.0
+
 
 class SimConfig(Frozen):
     bus: BusConfig = BusConfig()  # how to reach the session's Zenoh network
@@ -15,7 +19,7 @@ class SimConfig(Frozen):
     width: int = Field(84, ge=16)  # rendered frame width (px)
     height: int = Field(84, ge=16)  # rendered frame height (px)
     jpeg_quality: int = Field(90, ge=10, le=100)  # JPEG quality of published frames
-    control_hz: float = Field(20.0, gt=0)  # control ticks per second
+    control_hz: float = Field(20.0, ge=MIN_CONTROL_HZ, le=MAX_CONTROL_HZ)  # control ticks per second
     safety: SafetyConfig = SafetyConfig()  # workspace box, speed caps, command timeout: as on hardware
     realtime: bool = True  # pace ticks by the wall clock; false: lockstep, as fast as commands come
     command_timeout_s: float = Field(1.0, gt=0)  # lockstep only: wait this long for a tick's command

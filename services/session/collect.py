@@ -201,7 +201,7 @@ def collect(
     progress=print,
     auth: bool = False,
 ) -> SessionResult:
-    out = writable_dir(out, "--out")
+    out = Path(out)
     sim = [f"rig={rig}", f"task={task}", f"realtime={str(realtime).lower()}", f"control_hz={control_hz}"]
     if size:
         sim += [f"width={size}", f"height={size}"]
@@ -209,7 +209,8 @@ def collect(
     for name, items in (extra or {}).items():
         overrides.setdefault(name, []).extend(items)
     stack = LocalStack(out, config, overrides, auth=auth)
-    stack.check()  # a wrong --set is one error before anything starts
+    stack.check()  # a wrong --set is one error before anything starts (and before --out is made)
+    writable_dir(out, "--out")
     progress(f"starting sim ({task}, rig {rig}), teleop (scripted) and recorder -> {out}")
     with stack:
         how = " (authenticated, access control on)" if auth else ""

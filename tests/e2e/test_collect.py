@@ -118,11 +118,17 @@ def test_bad_arguments_fail_fast_with_one_line(tmp_path):
         (["--set", "sim.nonexistent=1"], "nonexistent: Extra inputs are not permitted"),
         (["--set", "recorder.queue_size=0"], "queue_size"),
         (["--seed", "99990"], "--seed: collection seeds stay below 100000"),
+        # (before: the sim's ValueError traceback 2 s in, or a hang for 1e-9)
+        (["--hz", "1000"], "--hz must be 1..500 (the sim's physics steps every 2 ms), got 1000"),
+        (["--hz", "inf"], "--hz must be 1..500"),
+        (["--hz", "1e-9"], "--hz must be 1..500"),
+        (["--set", "sim.control_hz=600"], "control_hz: Input should be less than or equal to 500"),
     ]:
         proc = run_collect(tmp_path / "out", *args, timeout=60)
         lines = proc.stderr.strip().splitlines()
         assert proc.returncode == 2 and len(lines) == 1 and lines[0].startswith("error: ") and text in lines[0], args
         assert "starting sim" not in proc.stdout  # refused before any service starts
+        assert not (tmp_path / "out").exists()
     proc = subprocess.run(
         [sys.executable, "-m", "services.cli", "collect", "--out", str(blocker / "sub")],
         cwd=ROOT,

@@ -262,3 +262,10 @@ def test_any_thread_may_render_next(front):
         worker.join()
         assert np.array_equal(there["F"], here["F"])
         assert np.array_equal(w.render()["F"], here["F"])
+
+
+def test_the_sim_configs_rate_limit_is_one_tick_per_physics_step():
+    from sim.config import MAX_CONTROL_HZ
+    from sim.scene import TIMESTEP
+
+    assert MAX_CONTROL_HZ == pytest.approx(1 / TIMESTEP)
