@@ -5,7 +5,9 @@
     torchrun --nproc_per_node=4 -m services.cli train --data data/ds --preset paper --out runs/paper
 
 Settings: preset < --config YAML < VIEWSCALE_<FIELD> env < the flags below < --set key=value.
-Running it again with the same --out resumes from the run's latest checkpoint. Ctrl-C (SIGINT, SIGTERM,
+Running it again with the same --out resumes from the run's latest checkpoint, with the same seed,
+batch size, views, cond_dropout, optim and ema settings (a change of these is refused, naming it;
+steps, device, workers, logging, validation and checkpointing may change). Ctrl-C (SIGINT, SIGTERM,
 SIGHUP; under torchrun, to any rank) stops every rank after the same step and saves it; a second one
 stops at once, back to the latest checkpoint.
 """

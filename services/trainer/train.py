@@ -368,6 +368,37 @@ def _read_history(path: Path, upto: int) -> list[dict[str, Any]]:
 # -- the loop -----------------------------------------------------------------------------------
 
 
+# What a resumed run must keep: they choose its samples, noise and updates, and the checkpoint
+# records them (its views are what the server composes by default).
+RESUME_FIXED = ("seed", "batch_size", "cond_dropout", "optim", "ema")
+
+
+def resume_diff(info: dict[str, Any], cfg: TrainConfig, views: list[str]) -> list[str]:
+    """``name saved (now new)`` for each setting of ``RESUME_FIXED`` and the training views that
+    differ between a checkpoint's ``info`` and this run; empty for a checkpoint without the record.
+    A setting the record lacks (added since it was written) is not compared."""
+    saved = info.get("train")
+    if not isinstance(saved, dict):
+        return []
+    now = cfg.model_dump(mode="json")
+
+    def flat(d: Any, prefix: str) -> dict[str, Any]:
+        if isinstance(d, dict):
+            return {k: v for key, sub in d.items() for k, v in flat(sub, f"{prefix}.{key}").items()}
+        return {prefix: d}
+
+    def show(v: Any) -> str:
+        return ",".join(map(str, v)) if isinstance(v, list) else str(v)
+
+    out = []
+    if info.get("views") is not None and list(info["views"]) != views:
+        out.append(f"views {show(info['views'])} (now {show(views)})")
+    for name in RESUME_FIXED:
+        a, b = flat(saved.get(name), name), flat(now.get(name), name)
+        out += [f"{k} {show(a.get(k))} (now {show(b.get(k))})" for k in sorted(a) if a[k] != b.get(k)]
+    return out
+
+
 def train(
     cfg: TrainConfig,
     data: TrainData | None = None,
@@ -407,6 +438,13 @@ def train(
             raise ckpt.CheckpointError(
                 f"{latest} was trained on a different dataset (normalizer or action space differ); "
                 "resume it with the same --data, or use a new out directory"
+            )
+        changed = resume_diff(info, cfg, views)
+        if changed:
+            raise ckpt.CheckpointError(
+                f"{latest} was trained with other settings: {', '.join(changed)}; resume it with the same "
+                "seed, batch size, views, cond_dropout, optim and ema settings (steps, device, workers and "
+                "logging may change), or use a new out directory"
             )
 
     torch.manual_seed(cfg.seed)  # same initial weights on every rank

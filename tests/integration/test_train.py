@@ -7,6 +7,7 @@ import contextlib
 import json
 import logging
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -153,6 +154,32 @@ def test_resume_with_another_model_config_is_refused(sim_dataset, tmp_path):
     fresh = train_config_from_dict({**tiny(sim_dataset, tmp_path / "run", steps=2), "resume": False})
     with pytest.raises(ConfigError, match="already has checkpoints"):
         train(fresh)
+
+
+def test_resume_with_other_views_seed_batch_or_optimiser_is_refused(sim_dataset, tmp_path):
+    # Before, each of these went on without a word: the run mixed two sample streams, and a views
+    # change rewrote the checkpoint's training views (what serve composes by default).
+    first = train(train_config_from_dict(tiny(sim_dataset, tmp_path / "run", steps=1)))
+    assert load_policy(first.checkpoint).info["views"] == ["F", "FL", "FR"]
+    cases = [
+        ({"views": ["F"]}, "views F,FL,FR (now F)"),
+        ({"seed": 3}, "seed 0 (now 3)"),
+        ({"batch_size": 4}, "batch_size 8 (now 4)"),
+        ({"optim": {"lr": 1e-2}}, "optim.lr 0.003 (now 0.01)"),
+        ({"ema": {"enabled": False}}, "ema.enabled True (now False)"),
+        ({"cond_dropout": 0.1}, "cond_dropout 0.0 (now 0.1)"),
+    ]
+    for change, says in cases:
+        with pytest.raises(CheckpointError, match="was trained with other settings: " + re.escape(says)):
+            train(train_config_from_dict(tiny(sim_dataset, tmp_path / "run", steps=2, **change)))
+        assert latest_checkpoint(tmp_path / "run") == first.checkpoint, change  # nothing trained
+    # What may change: the step count, the device, the loader's workers, logging and checkpointing.
+    again = train(
+        train_config_from_dict(
+            tiny(sim_dataset, tmp_path / "run", steps=2, device="cpu", log_every=2, checkpoint_every=1, progress=False)
+        )
+    )
+    assert again.step == 2 and load_policy(again.checkpoint).info["views"] == ["F", "FL", "FR"]
 
 
 def test_wrong_action_space_for_the_config_is_a_clear_error(sim_dataset, tmp_path):
