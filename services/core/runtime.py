@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import logging
 import os
@@ -9,6 +10,7 @@ import platform
 import signal
 import sys
 import threading
+from collections.abc import Iterator
 from pathlib import Path
 
 from services.core.config import log_level_name
@@ -126,3 +128,26 @@ def writable_dir(path: str | os.PathLike, argument: str) -> Path:
     if not p.is_dir() or not os.access(p, os.W_OK | os.X_OK):
         raise OutputError(f"{argument} {p}: not a writable directory")
     return p
+
+
+@contextlib.contextmanager
+def output_dir(path: str | os.PathLike, argument: str) -> Iterator[Path]:
+    """``writable_dir`` for a command's output, taken back when the command fails: where ``path``
+    did not exist, the empty folders the block left in it, ``path`` itself and the parents made
+    for it are removed again if the block raises. A file, or a folder holding one, is never removed."""
+    p = Path(path).absolute()
+    made = [q for q in [p, *p.parents] if not q.exists()]  # leaf first
+    writable_dir(path, argument)
+    try:
+        yield Path(path)
+    except BaseException:
+        if made:  # ``path`` is new: every folder in it is this command's; empty ones go
+            for root, _dirs, _files in os.walk(p, topdown=False):
+                with contextlib.suppress(OSError):
+                    Path(root).rmdir()  # (fails for a folder that still holds something)
+            for q in made[1:]:
+                try:
+                    q.rmdir()
+                except OSError:
+                    break
+        raise

@@ -52,7 +52,7 @@ def _stop_on_signals(stop: threading.Event, announce: bool):
 
 def _train(args: argparse.Namespace) -> int:
     from services.core.config import ConfigError
-    from services.core.runtime import OutputError, writable_dir
+    from services.core.runtime import OutputError, output_dir
     from services.dataset.store import DatasetError, DatasetStore
     from services.policy.checkpoint import CheckpointError, latest_checkpoint
     from services.trainer.config import load_train_config
@@ -81,8 +81,8 @@ def _train(args: argparse.Namespace) -> int:
     try:
         cfg = load_train_config(args.config, [*overrides, *args.set])
         DatasetStore(cfg.data)  # a wrong --data: one line, and no empty run folder left behind
-        writable_dir(cfg.out, "--out")  # before the dataset is loaded and the model built
-        with _stop_on_signals(stop, announce=dist_env()[0] == 0):
+        # made before the dataset is loaded and the model built; taken back if nothing was written
+        with output_dir(cfg.out, "--out"), _stop_on_signals(stop, announce=dist_env()[0] == 0):
             result = train(cfg, stop=stop)
     except (ConfigError, DatasetError, TrainingError, CheckpointError, OutputError) as exc:
         print(f"error: {exc}", file=sys.stderr)

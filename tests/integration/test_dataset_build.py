@@ -488,3 +488,19 @@ def test_an_image_size_above_the_recorded_frames_is_warned_about(raw_dir, tmp_pa
     said.clear()
     build_dataset(raw_dir, tmp_path / "small", BuildParams(views=("F",), image_size=(32, 24)), progress=said.append)
     assert not [m for m in said if m.startswith("warning:")]
+
+
+def test_a_failed_build_leaves_no_output_folder(tmp_path, capsys):
+    """(it left --out behind with an empty episodes/ folder in it)"""
+    write_episode(tmp_path / "raw", "ep", 24, cameras=["F"])
+    out = tmp_path / "new" / "ds"
+    rc = viewscale(["dataset", "build", "--raw", str(tmp_path / "raw"), "--out", str(out), "--views", "FX"])
+    assert rc == 2 and "'FX'" in capsys.readouterr().err
+    assert not (tmp_path / "new").exists()
+    # an --out that was there stays, with what the user had in it
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "mine" / "notes.txt").write_text("keep\n")
+    rc = viewscale(
+        ["dataset", "build", "--raw", str(tmp_path / "raw"), "--out", str(tmp_path / "mine"), "--views", "FX"]
+    )
+    assert rc == 2 and (tmp_path / "mine" / "notes.txt").read_text() == "keep\n"

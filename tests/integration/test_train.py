@@ -485,3 +485,15 @@ def test_a_wrong_data_folder_is_one_error_line_and_leaves_no_run_folder(tmp_path
     rc = viewscale(["train", "--data", str(tmp_path / "nowhere"), "--out", str(tmp_path / "run")])
     assert rc == 2 and capsys.readouterr().err.strip() == f"error: dataset {tmp_path / 'nowhere'} does not exist"
     assert not (tmp_path / "run").exists()
+
+
+def test_a_run_refused_by_the_dataset_leaves_no_run_folder(sim_dataset, tmp_path, capsys):
+    """(a view the dataset lacks, or another action space, left --out behind, empty)"""
+    for extra, says in [
+        (["--views", "NOPE"], "view NOPE is not in"),
+        (["--set", "action_space=base"], "holds 'camera'-space actions but the config asks for 'base'"),
+    ]:
+        out = tmp_path / "runs" / "run"
+        rc = viewscale(["train", "--data", str(sim_dataset), "--out", str(out), "--steps", "1", *extra])
+        assert rc == 2 and says in capsys.readouterr().err
+        assert not (tmp_path / "runs").exists()  # nor the parent made for it

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from services.core.runtime import OutputError, writable_dir
+from services.core.runtime import OutputError, output_dir, writable_dir
 
 
 def test_makes_the_folder_and_its_parents(tmp_path):
@@ -22,3 +22,33 @@ def test_a_file_in_the_way_is_named_and_left_as_it_was(tmp_path):
     with pytest.raises(OutputError, match=rf"^--root {note / 'x' / 'y'}: not a directory \({note} is a file\)$"):
         writable_dir(note / "x" / "y", "--root")
     assert note.read_text() == "keep me\n" and sorted(tmp_path.iterdir()) == [note]
+
+
+class Failed(Exception):
+    pass
+
+
+def test_output_dir_takes_back_what_it_made_when_the_command_fails(tmp_path):
+    # a new folder (and its new parents), with the empty subfolders the command made: all gone
+    with pytest.raises(Failed), output_dir(tmp_path / "a" / "b", "--out") as out:
+        (out / "episodes" / "x").mkdir(parents=True)
+        raise Failed
+    assert list(tmp_path.iterdir()) == []
+    # a folder that was there is kept, even empty, and so is everything of the user's in it
+    (tmp_path / "mine").mkdir()
+    with pytest.raises(Failed), output_dir(tmp_path / "mine", "--out") as out:
+        (out / "made").mkdir()
+        raise Failed
+    assert (tmp_path / "mine" / "made").is_dir()
+    # a file written before the failure keeps its folder and the folders above it
+    with pytest.raises(KeyboardInterrupt), output_dir(tmp_path / "new" / "run", "--out") as out:
+        (out / "ckpt").mkdir()
+        (out / "ckpt" / "weights").write_text("step 3\n")
+        (out / "empty").mkdir()
+        raise KeyboardInterrupt
+    assert (tmp_path / "new" / "run" / "ckpt" / "weights").read_text() == "step 3\n"
+    assert not (tmp_path / "new" / "run" / "empty").exists()
+    # and a command that succeeds keeps its (empty) output
+    with output_dir(tmp_path / "ok", "--out"):
+        pass
+    assert (tmp_path / "ok").is_dir()
