@@ -190,3 +190,10 @@ def test_rerender_refuses_bad_arguments_before_writing_anything(sim_dataset, tmp
     # a --raw with no episodes: it made --out first and left it there, empty
     assert main(["rerender", "--raw", str(tmp_path / "none"), "--rig", "three30", "--out", str(tmp_path / "rr")]) == 2
     assert "raw data path" in capsys.readouterr().err and not (tmp_path / "rr").exists()
+    # episodes that are all skipped: nothing written, and no empty --out left (it was, before)
+    (tmp_path / "junk").mkdir()
+    (tmp_path / "junk" / "a.mcap").write_bytes(b"not an mcap")
+    assert main(["rerender", "--raw", str(tmp_path / "junk"), "--rig", "three30", "--out", str(tmp_path / "rr")]) == 1
+    out = capsys.readouterr().out
+    assert "re-rendered none of 1 episodes through three30: nothing written to" in out and "skipped a.mcap" in out
+    assert not (tmp_path / "rr").exists()
