@@ -37,7 +37,7 @@ from services.dataset.episodes import (
     load_raw_episode,
     segments,
 )
-from services.dataset.pseudo_demos import PseudoDemo, chunk_starts, make_pseudo_demo
+from services.dataset.pseudo_demos import PseudoDemo, chunk_starts, longest_segment, make_pseudo_demo, no_chunk_fits
 from services.dataset.store import CONTACT_SHEET, EPISODES, MANIFEST, META, NORMALIZER, SUMMARY, VERSION, DatasetError
 from services.dataset.summary import ACTION_LAYOUT, summarise
 
@@ -629,6 +629,19 @@ def build_dataset(
             "they are upscaled, which adds no detail and costs disk and memory"
         )
     summary = summarise(out, params, got.episodes, norm, got.skipped, (train, val))
+    if summary["samples"] == 0:  # (before: "samples 0" in the summary, and later "the training set is empty")
+        longest = max(
+            (
+                longest_segment(np.load(out / EPISODES / e["dir"] / f"{v}.ends.npy"))
+                for e in got.episodes
+                for v in params.views
+            ),
+            default=0,
+        )
+        progress(
+            f"warning: no samples: {no_chunk_fits(params.To, params.Tp, params.Ta, longest)} "
+            "(a shorter --Tp, or a training run with a shorter model.pred_horizon, gets some)"
+        )
     summary["build_s"] = round(time.perf_counter() - t0, 3)
     _write_json(out / SUMMARY, summary)
     if contact_episodes > 0:

@@ -63,6 +63,26 @@ def make_pseudo_demo(
     )
 
 
+def shortest_chunked(To: int, Tp: int, Ta: int) -> int:
+    """The fewest ticks a segment needs for one chunk of ``chunk_starts`` (To-1 observations padded
+    before its start, Ta-1 actions after its end)."""
+    return Tp - Ta - To + 2
+
+
+def longest_segment(ends: np.ndarray) -> int:
+    """The most ticks in one segment of a pseudo-demo (``ends``: each segment's end row)."""
+    e = np.asarray(ends, dtype=np.int64)
+    return int(np.diff(e, prepend=0).max()) if len(e) else 0
+
+
+def no_chunk_fits(To: int, Tp: int, Ta: int, longest: int) -> str:
+    """Why a set of pseudo-demos whose longest segment has ``longest`` ticks gives no sample."""
+    return (
+        f"no chunk fits: with To={To}, Tp={Tp}, Ta={Ta} a chunk needs a segment of at least "
+        f"{shortest_chunked(To, Tp, Ta)} ticks, and the longest here has {longest}"
+    )
+
+
 def chunk_starts(ends: np.ndarray, To: int, Tp: int, Ta: int) -> np.ndarray:
     """(K, 3) rows ``(current, seg_start, seg_end)`` of every chunk of a pseudo-demo's segments."""
     if not 1 <= To <= Tp or not 1 <= Ta <= Tp - To + 1:

@@ -23,7 +23,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from services.dataset.pseudo_demos import chunk_rows, chunk_starts, pad_hold
+from services.dataset.pseudo_demos import chunk_rows, chunk_starts, longest_segment, pad_hold
 from services.dataset.store import DatasetError, DatasetStore
 
 SPLITS = ("train", "val", "all")
@@ -77,6 +77,7 @@ class PseudoDemoDataset(Dataset):
         self._action = np.concatenate(actions) if actions else np.zeros((0, 7), np.float32)  # (rows, 7)
         self._offset = np.asarray(offsets, np.int64)  # demo j's rows start at _offset[j]
         self.index = np.concatenate(index) if index else np.zeros((0, 4), np.int64)  # (N, 4): demo, cur, s, e
+        self.longest_segment = max((longest_segment(d.load("ends", mmap=False)) for d in self.demos), default=0)
         self._frames: OrderedDict[int, np.ndarray] = OrderedDict()
 
     def __len__(self) -> int:

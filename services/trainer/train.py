@@ -30,6 +30,7 @@ import torch.distributed as dist
 from torch.utils.data import DataLoader, Dataset, Sampler
 
 from services.core.config import ConfigError
+from services.dataset.pseudo_demos import no_chunk_fits
 from services.dataset.store import DatasetError
 from services.policy import checkpoint as ckpt
 from services.policy.model.diffusion import compute_loss, make_train_scheduler
@@ -130,6 +131,9 @@ def load_train_data(cfg: TrainConfig) -> TrainData:
         raise TrainingError(str(exc)) from exc
     except ValueError as exc:  # windows that do not fit the episodes (e.g. Tp too long)
         raise TrainingError(f"dataset {cfg.data}: {exc}") from exc
+    if len(train_ds) == 0 and train_ds.demos:  # (before: "the training set is empty", not why)
+        why = no_chunk_fits(train_ds.To, train_ds.Tp, train_ds.Ta, train_ds.longest_segment)
+        raise TrainingError(f"dataset {cfg.data}: no training samples: {why} (set a shorter model.pred_horizon)")
     if val_ds is not None and len(val_ds) == 0:
         val_ds = None
     meta = dict(train_ds.meta)

@@ -490,6 +490,27 @@ def test_an_image_size_above_the_recorded_frames_is_warned_about(raw_dir, tmp_pa
     assert not [m for m in said if m.startswith("warning:")]
 
 
+def test_a_horizon_longer_than_every_episode_is_named_at_build_and_at_training(raw_dir, tmp_path):
+    """(a build gave "samples 0" without a word, and training then said only "the training set is empty")"""
+    from services.trainer.config import train_config_from_dict
+    from services.trainer.train import TrainingError, load_train_data
+
+    said: list[str] = []
+    out = tmp_path / "long"
+    build_dataset(raw_dir, out, BuildParams(views=("F",), image_size=(32, 24), Tp=N + 40), progress=said.append)
+    [warning] = [m for m in said if m.startswith("warning:")]
+    need = N + 40 - 8 - 2 + 2  # Tp - Ta - To + 2
+    assert (
+        f"no samples: no chunk fits: with To=2, Tp={N + 40}, Ta=8 a chunk needs a segment of at least {need}" in warning
+    )
+    assert DatasetStore(out).summary["samples"] == 0
+    cfg = {"data": str(out), "out": str(tmp_path / "run"), "preset": "tiny", "progress": False}
+    with pytest.raises(TrainingError, match=rf"no training samples: no chunk fits: .*Tp={N + 40}.*set a shorter"):
+        load_train_data(train_config_from_dict(cfg))
+    # the windows are cut when loading: a shorter horizon for the model finds samples in the same dataset
+    assert len(load_train_data(train_config_from_dict({**cfg, "model": {"pred_horizon": 16}})).train) > 0
+
+
 def test_a_failed_build_leaves_no_output_folder(tmp_path, capsys):
     """(it left --out behind with an empty episodes/ folder in it)"""
     write_episode(tmp_path / "raw", "ep", 24, cameras=["F"])

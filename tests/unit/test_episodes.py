@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from services.dataset.episodes import EpisodeError, RawEpisode, align, default_max_frame_age_ns, segments
-from services.dataset.pseudo_demos import chunk_rows, chunk_starts, pad_hold
+from services.dataset.pseudo_demos import chunk_rows, chunk_starts, longest_segment, pad_hold, shortest_chunked
 
 PERIOD = 50_000_000  # 20 Hz
 T0 = 1_700_000_000_000_000_000
@@ -146,6 +146,14 @@ def test_chunks_match_diffusion_policy_sampler():
     assert len(chunk_starts(np.array([7]), To, Tp, Ta)) == 0
     with pytest.raises(ValueError):
         chunk_starts(np.array([L]), 3, 2, 1)
+
+
+@pytest.mark.parametrize("To, Tp, Ta", [(2, 16, 8), (1, 4, 4), (3, 10, 1), (2, 500, 8)])
+def test_the_shortest_segment_named_in_errors_is_the_one_that_gives_a_chunk(To, Tp, Ta):
+    n = shortest_chunked(To, Tp, Ta)
+    assert len(chunk_starts(np.array([n]), To, Tp, Ta)) == 1
+    assert len(chunk_starts(np.array([n - 1]), To, Tp, Ta)) == 0
+    assert longest_segment(np.array([1, 1 + n, 2 + n])) == n and longest_segment(np.array([], np.int64)) == 0
 
 
 def test_hold_padding_zeroes_motion_and_keeps_the_gripper():
