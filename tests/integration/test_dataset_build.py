@@ -376,6 +376,8 @@ def test_cli_build_and_info(raw_dir, tmp_path, capsys):
         err = capsys.readouterr().err
         last = err.strip().splitlines()[-1]
         assert rc == 2 and needle in last and last.startswith("error:") and "Traceback" not in err
+    assert not (tmp_path / "bad").exists()  # the failed builds took back the --out they made
+    (tmp_path / "bad").mkdir()
     assert viewscale(["dataset", "info", str(tmp_path / "bad")]) == 2
     assert "not a complete dataset" in capsys.readouterr().err
 
