@@ -483,6 +483,18 @@ def train(
         history = _read_history(out / "log.jsonl", start)
         if main:
             log.info("resuming %s from step %d", out, start)
+        saved_world = int(state.get("world", 1))
+        if main and saved_world != world:  # allowed (a run moves to the GPUs there are), but not exact
+            log.warning(
+                "%s was written by %d training processes and is resumed by %d: from step %d on, a step "
+                "takes %d samples instead of %d, and the run is no longer the one it would have been",
+                latest,
+                saved_world,
+                world,
+                start,
+                cfg.batch_size * world,
+                cfg.batch_size * saved_world,
+            )
     sched = make_train_scheduler(model_cfg.noise)
     net: torch.nn.Module = LossModule(policy, sched, cfg.cond_dropout)
     if distributed:

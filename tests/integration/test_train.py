@@ -307,7 +307,7 @@ ONE_THREAD = {**os.environ, "OMP_NUM_THREADS": "1"}
 
 
 @pytest.mark.slow
-def test_torchrun_trains_with_two_processes(sim_dataset, tmp_path):
+def test_torchrun_trains_with_two_processes(sim_dataset, tmp_path, caplog):
     """DistributedDataParallel on the CPU (gloo): both ranks step together, rank 0 validates and writes."""
     out = tmp_path / "ddp"
     cmd = _torchrun(sim_dataset, out, 4, "val_every=2")
@@ -319,6 +319,28 @@ def test_torchrun_trains_with_two_processes(sim_dataset, tmp_path):
     assert [r["step"] for r in rows] == [2, 4] and all("val_loss" in r for r in rows)
     assert rows[-1]["samples_s"] == pytest.approx(rows[-1]["it_s"] * 8, rel=0.01)  # 2 ranks x batch 4
     assert load_policy(out).info["step"] == 4
+    # resumed by one process: allowed, and said, since every step from here takes half the samples
+    with caplog.at_level(logging.WARNING):
+        rc = viewscale(
+            [
+                "train",
+                "--data",
+                str(sim_dataset),
+                "--out",
+                str(out),
+                "--steps",
+                "5",
+                "--workers",
+                "0",
+                "--batch-size",
+                "4",
+            ]
+        )
+    assert rc == 0 and load_policy(out).info["step"] == 5
+    warning = (
+        "was written by 2 training processes and is resumed by 1: from step 4 on, a step takes 4 samples instead of 8"
+    )
+    assert warning in caplog.text
 
 
 @contextlib.contextmanager
