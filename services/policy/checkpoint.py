@@ -85,14 +85,32 @@ def latest_checkpoint(run_dir: str | Path) -> Path | None:
 
 
 def resolve_checkpoint(path: str | Path) -> Path:
-    """A checkpoint folder, or a run directory (its latest checkpoint)."""
+    """A checkpoint folder, or a run directory (its latest checkpoint), or a run's ``checkpoints``
+    folder (the same). Anything else is a CheckpointError saying what the path is instead."""
     path = Path(path)
     if (path / MODEL_FILE).is_file():
         return path
+    if (path / LATEST).is_file() and path.name == "checkpoints":  # runs/x/checkpoints: the run's latest
+        path = path.parent
     latest = latest_checkpoint(path)
-    if latest is None:
-        raise CheckpointError(f"{path} is neither a checkpoint folder nor a run directory with checkpoints")
-    return latest
+    if latest is not None:
+        return latest
+    if not path.exists():
+        raise CheckpointError(f"checkpoint {path} does not exist")
+    if not path.is_dir():
+        raise CheckpointError(f"{path} is a file: give a checkpoint folder or a run directory")
+    if (path / POLICY_FILE).is_file():
+        raise CheckpointError(f"{path} is an incomplete checkpoint: it has no {MODEL_FILE}")
+    if (path / "manifest.json").is_file() and (path / "meta.json").is_file():
+        raise CheckpointError(
+            f"{path} is a dataset, not a checkpoint: train a policy on it (viewscale train --data {path})"
+        )
+    if (path / "checkpoints").is_dir() or (path / "config.json").is_file():
+        raise CheckpointError(
+            f"run directory {path} has no complete checkpoint yet "
+            "(a run saves one every checkpoint_every steps and at its end)"
+        )
+    raise CheckpointError(f"{path} is neither a checkpoint folder nor a run directory with checkpoints")
 
 
 def optimizer_to_tensors(optim: torch.optim.Optimizer) -> tuple[dict[str, torch.Tensor], list[dict[str, Any]]]:

@@ -1,6 +1,8 @@
 """The checkpoint folders a run keeps: the newest ``keep``, ``latest`` naming the newest, and no
 ``.partial`` folder of a save that was cut short (a run stopped at once mid-save left one behind)."""
 
+import re
+
 import torch
 
 from services.policy.checkpoint import latest_checkpoint, save_checkpoint
@@ -21,3 +23,33 @@ def test_a_save_keeps_the_newest_and_drops_the_folders_of_cut_saves(tmp_path):
     _save(run, 4)
     assert sorted(p.name for p in (run / "checkpoints").iterdir() if p.is_dir()) == ["step_0000003", "step_0000004"]
     assert latest_checkpoint(run).name == "step_0000004"
+
+
+def test_resolving_a_checkpoint_says_what_the_path_is_instead(tmp_path):
+    import pytest
+
+    from services.policy.checkpoint import CheckpointError, resolve_checkpoint
+
+    run = tmp_path / "run"
+    step = _save(run, 5)
+    assert resolve_checkpoint(run) == step == resolve_checkpoint(step)
+    assert resolve_checkpoint(run / "checkpoints") == step  # the run's checkpoints folder: its latest (was refused)
+    (tmp_path / "file.txt").write_text("")
+    (tmp_path / "started" / "checkpoints").mkdir(parents=True)  # a run before its first save
+    (tmp_path / "cut").mkdir()
+    (tmp_path / "cut" / "policy.json").write_text("{}")
+    (tmp_path / "ds").mkdir()
+    (tmp_path / "ds" / "manifest.json").write_text("{}")
+    (tmp_path / "ds" / "meta.json").write_text("{}")
+    (tmp_path / "empty").mkdir()
+    # each of these said "is neither a checkpoint folder nor a run directory with checkpoints"
+    for name, says in [
+        ("nowhere", f"checkpoint {tmp_path / 'nowhere'} does not exist"),
+        ("file.txt", "is a file: give a checkpoint folder or a run directory"),
+        ("started", "has no complete checkpoint yet"),
+        ("cut", "is an incomplete checkpoint: it has no model.safetensors"),
+        ("ds", "is a dataset, not a checkpoint: train a policy on it"),
+        ("empty", "is neither a checkpoint folder nor a run directory with checkpoints"),
+    ]:
+        with pytest.raises(CheckpointError, match=re.escape(says)):
+            resolve_checkpoint(tmp_path / name)
