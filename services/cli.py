@@ -527,11 +527,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from services.core.runtime import LOG_FORMAT, die_with_parent
-
-    die_with_parent()  # started by a session or an experiment: do not outlive it
     args = None
-    try:
+    try:  # (from the first import on: a Ctrl-C there was a traceback from pydantic's imports)
+        from services.core.runtime import LOG_FORMAT, die_with_parent
+
+        die_with_parent()  # started by a session or an experiment: do not outlive it
         args = build_parser().parse_args(argv)  # (it imports every command's module: a second or so)
         logging.basicConfig(level=getattr(logging, args.log_level), format=LOG_FORMAT)
         return int(args.func(args) or 0)

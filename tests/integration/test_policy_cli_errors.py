@@ -274,10 +274,12 @@ def test_a_stop_while_waiting_for_workers_ends_the_server_at_once_and_the_wait_s
 
 
 # Python as a terminal starts it: SIGINT raises KeyboardInterrupt (a parent that ignores SIGINT,
-# as a background job of a script does, would hand that on to the child)
+# as a background job of a script does, would hand that on to the child). It says "started" once
+# its handler is in place: a SIGINT before that, while the interpreter itself starts (a loaded
+# machine can take longer than 0.2 s), would kill it outright.
 AS_FROM_A_TERMINAL = (
     "import signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
-    "from services.cli import main; sys.exit(main())"
+    "print('started', flush=True); from services.cli import main; sys.exit(main())"
 )
 
 
@@ -291,7 +293,8 @@ def test_ctrl_c_while_the_command_line_starts_is_one_line_not_a_traceback(tiny_c
          "--listen", "127.0.0.1:0", "--in-process"],
         cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=user_env(),
     )  # fmt: skip
-    time.sleep(after_s)  # the moment of the Ctrl-C is what is tested
+    assert proc.stdout.readline() == "started\n"
+    time.sleep(after_s)  # the moment of the Ctrl-C is what is tested (the parser takes about a second)
     proc.send_signal(signal.SIGINT)
     out, err = proc.communicate(timeout=30)
     assert "listening" not in out  # (it was still starting)
