@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
+import fcntl
 import logging
 import os
 import platform
 import signal
+import socket
 import sys
 import threading
 from collections.abc import Iterator
@@ -151,3 +153,45 @@ def output_dir(path: str | os.PathLike, argument: str) -> Iterator[Path]:
                 except OSError:
                     break
         raise
+
+
+LOCK_FILE = ".viewscale.lock"  # held in an output folder while a command writes there
+
+
+@contextlib.contextmanager
+def exclusive(path: str | os.PathLike, what: str) -> Iterator[None]:
+    """Hold the lock of output folder ``path`` while a command writes in it. A second command on the
+    same folder (another terminal, a run thought dead) is refused at once with an OutputError naming
+    the process that holds it, instead of both writing there. The OS drops the lock of a process
+    that dies, killed or not; the lock file goes when the lock is given up."""
+    lock = Path(path) / LOCK_FILE
+    while True:
+        fh = open(lock, "a+")  # held until the block ends
+        try:
+            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            fh.seek(0)
+            holder = fh.read().strip()
+            fh.close()
+            raise OutputError(
+                f"{path} is in use by another {what}"
+                + (f" ({holder})" if holder else "")
+                + ": wait for it to end, or choose another folder"
+            ) from None
+        try:
+            same = os.stat(lock).st_ino == os.fstat(fh.fileno()).st_ino
+        except FileNotFoundError:
+            same = False
+        if same:
+            break
+        fh.close()  # its holder removed it while we opened it: take the lock of the new one
+    try:
+        fh.seek(0)
+        fh.truncate()
+        fh.write(f"pid {os.getpid()} on {socket.gethostname()}\n")
+        fh.flush()
+        yield
+    finally:
+        with contextlib.suppress(OSError):
+            lock.unlink()
+        fh.close()

@@ -28,6 +28,7 @@ import numpy as np
 from services.core.action_spaces import ACTION_DIM, STATE_NAMES, check_space, resolve_state_frame
 from services.core.normalizer import Normalizer, NormalizerStats
 from services.core.rig import CALIBRATION_MAX_AGE_DAYS
+from services.core.runtime import LOCK_FILE
 from services.core.tensors import FrameSizeError, decode_resized
 from services.dataset.calibration import calibration_problems, problems_of_info
 from services.dataset.contact_sheet import write_contact_sheet
@@ -310,7 +311,12 @@ def _read_manifest(out: Path) -> dict[str, Any]:
 def _check_output(out: Path) -> None:
     if out.exists() and not out.is_dir():
         raise DatasetError(f"output {out} exists and is not a directory")
-    if out.is_dir() and any(out.iterdir()) and not ((out / MANIFEST).exists() or (out / EPISODES).is_dir()):
+    mine = {LOCK_FILE}  # (the lock a build holds while it writes: ``viewscale dataset build``)
+    if (
+        out.is_dir()
+        and any(p.name not in mine for p in out.iterdir())
+        and not ((out / MANIFEST).exists() or (out / EPISODES).is_dir())
+    ):
         raise DatasetError(f"output {out} is a non-empty directory that is not a viewscale dataset")
 
 

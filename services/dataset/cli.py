@@ -17,7 +17,7 @@ from pathlib import Path
 
 from services.core.action_spaces import SPACES, STATE_FRAMES
 from services.core.rig import CALIBRATION_MAX_AGE_DAYS
-from services.core.runtime import OutputError, output_dir
+from services.core.runtime import OutputError, exclusive, output_dir
 from services.dataset.build import BuildParams, build_dataset, find_episodes
 from services.dataset.episodes import EpisodeError
 from services.dataset.store import CONTACT_SHEET, DatasetError, DatasetStore
@@ -70,7 +70,7 @@ def _build(args: argparse.Namespace) -> int:
             raise DatasetError(f"--contact-episodes must be 0 or more, got {args.contact_episodes}")
         episodes = find_episodes([Path(p) for p in args.raw])  # a wrong --raw: no empty --out left behind
         # made before an hour of decoding, not after; taken back if the build fails before writing
-        with output_dir(args.out, "--out"):
+        with output_dir(args.out, "--out"), exclusive(args.out, "dataset build"):
             result = build_dataset(
                 episodes,  # (the files found: the folders are not walked again)
                 Path(args.out),

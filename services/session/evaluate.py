@@ -23,6 +23,7 @@ first N episodes from one camera with the outcome marked.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import statistics
@@ -37,7 +38,7 @@ from typing import Any
 from services.core.bus import Bus
 from services.core.config import ConfigError, named_twice
 from services.core.rig import load_rig
-from services.core.runtime import OutputError, child_env, writable_dir
+from services.core.runtime import OutputError, child_env, exclusive, writable_dir
 from services.core.stats import percentile, wilson
 from services.policy.aggregation import CompositionError, renormalise
 from services.policy.checkpoint import read_info, resolve_checkpoint
@@ -366,87 +367,91 @@ def evaluate(spec: EvalSpec, out: Path, progress: Callable[[str], None] = print)
     rollouts = out / "rollouts"
     if rollouts.exists() and any(rollouts.glob("*.mcap")):
         raise EvalError(f"{rollouts} already holds rollouts: pick another --out (or remove it)")
+    held = contextlib.ExitStack()
     try:
         writable_dir(out, "--out")
+        # one evaluation per folder: a second one would record over its rollouts and statistics
+        held.enter_context(exclusive(out, "evaluation"))
     except OutputError as exc:
         raise EvalError(str(exc)) from None
-    stats_file = out / "logs" / "policy_stats.jsonl"
-    stats_file.parent.mkdir(parents=True, exist_ok=True)
-    stats_file.unlink(missing_ok=True)
+    with held:
+        stats_file = out / "logs" / "policy_stats.jsonl"
+        stats_file.parent.mkdir(parents=True, exist_ok=True)
+        stats_file.unlink(missing_ok=True)
 
-    sim = [
-        f"rig={rig}",
-        f"task={spec.task}",
-        f"realtime={str(spec.realtime).lower()}",
-        f"width={size}",
-        f"height={size}",
-        "command_timeout_s=120",
-    ]
-    teleop: list[str] = []
-    seed0 = spec.seed if spec.seed is not None else EVAL_SEEDS[spec.task]
-    cfg_kw = dict(
-        task=spec.task,
-        rig=rig,
-        episodes=spec.episodes,
-        seed=seed0,
-        evaluation=True,
-        max_ticks=spec.max_ticks,
-        control_hz=facts["control_hz"] if facts else 20.0,
-    )
-
-    def run_session(server_address: str | None):
-        if server_address is not None:
-            teleop[:] = [
-                "driver.type=policy",
-                f"driver.server={server_address}",
-                f"driver.blocking={str(not spec.realtime).lower()}",
-                f"driver.stats_file={stats_file}",
-            ]
-            if views:
-                teleop.append("driver.views=[" + ",".join(views) + "]")
-            if spec.gamma:
-                teleop.append("driver.gamma={" + ",".join(f"{k}: {v}" for k, v in spec.gamma.items()) + "}")
-        overrides = {"sim": sim, "recorder": [f"out_dir={rollouts}"], "teleop": teleop}
-        who = "the scripted expert" if spec.expert else f"the policy ({', '.join(views or [])})"
-        progress(
-            f"evaluating {who} on {spec.task}: {spec.episodes} episodes from seed {seed0}, rig {rig}, "
-            f"{size}x{size}, {'real time' if spec.realtime else 'lockstep'}"
+        sim = [
+            f"rig={rig}",
+            f"task={spec.task}",
+            f"realtime={str(spec.realtime).lower()}",
+            f"width={size}",
+            f"height={size}",
+            "command_timeout_s=120",
+        ]
+        teleop: list[str] = []
+        seed0 = spec.seed if spec.seed is not None else EVAL_SEEDS[spec.task]
+        cfg_kw = dict(
+            task=spec.task,
+            rig=rig,
+            episodes=spec.episodes,
+            seed=seed0,
+            evaluation=True,
+            max_ticks=spec.max_ticks,
+            control_hz=facts["control_hz"] if facts else 20.0,
         )
-        with LocalStack(out, None, overrides) as stack:
-            progress(f"services ready on {stack.endpoint}; logs in {stack.log_dir}")
-            cfg = SessionConfig(bus=stack.bus_config(), **cfg_kw)
-            with Bus(cfg.bus) as bus:
-                try:
-                    return Session(cfg, bus, progress=progress).run()
-                except (SessionError, TimeoutError) as exc:
-                    stack.check_alive()
-                    raise CollectError(str(exc)) from exc
 
-    if spec.expert:
-        result = run_session(None)
-    elif spec.server:
-        progress(f"policy server {spec.server}: {facts['path']}")
-        result = run_session(spec.server)
-    else:
-        with PolicyServer(facts["path"], out / "logs", views, spec.workers, rig, spec.task) as server:
-            progress(f"policy server ready on {server.address} ({spec.workers or 'no'} workers)")
-            result = run_session(server.address)
-
-    stats = {}
-    if stats_file.is_file():
-        for line in stats_file.read_text().splitlines():
-            row = json.loads(line)
-            stats[row["episode_id"]] = row
-    rows = _episode_rows(result, stats)
-    latencies = [x for s in stats.values() for x in s["latency_ms"]]
-    rep = summarise(replace(spec, views=views), rows, latencies, facts, time.monotonic() - t0)
-    rep["rig"], rep["size"] = rig, size
-    (out / "report.json").write_text(json.dumps({"summary": rep, "episodes": rows}, indent=2) + "\n")
-    (out / "report.md").write_text(format_report(rep, rows))
-    if spec.video:
-        for r in rows[: spec.video]:
-            path = write_video(
-                Path(r["path"]), video_camera, out / "videos" / f"{Path(r['path']).stem}.mp4", r["success"]
+        def run_session(server_address: str | None):
+            if server_address is not None:
+                teleop[:] = [
+                    "driver.type=policy",
+                    f"driver.server={server_address}",
+                    f"driver.blocking={str(not spec.realtime).lower()}",
+                    f"driver.stats_file={stats_file}",
+                ]
+                if views:
+                    teleop.append("driver.views=[" + ",".join(views) + "]")
+                if spec.gamma:
+                    teleop.append("driver.gamma={" + ",".join(f"{k}: {v}" for k, v in spec.gamma.items()) + "}")
+            overrides = {"sim": sim, "recorder": [f"out_dir={rollouts}"], "teleop": teleop}
+            who = "the scripted expert" if spec.expert else f"the policy ({', '.join(views or [])})"
+            progress(
+                f"evaluating {who} on {spec.task}: {spec.episodes} episodes from seed {seed0}, rig {rig}, "
+                f"{size}x{size}, {'real time' if spec.realtime else 'lockstep'}"
             )
-            progress(f"video {path}")
-    return EvalResult(rep, out, rows)
+            with LocalStack(out, None, overrides) as stack:
+                progress(f"services ready on {stack.endpoint}; logs in {stack.log_dir}")
+                cfg = SessionConfig(bus=stack.bus_config(), **cfg_kw)
+                with Bus(cfg.bus) as bus:
+                    try:
+                        return Session(cfg, bus, progress=progress).run()
+                    except (SessionError, TimeoutError) as exc:
+                        stack.check_alive()
+                        raise CollectError(str(exc)) from exc
+
+        if spec.expert:
+            result = run_session(None)
+        elif spec.server:
+            progress(f"policy server {spec.server}: {facts['path']}")
+            result = run_session(spec.server)
+        else:
+            with PolicyServer(facts["path"], out / "logs", views, spec.workers, rig, spec.task) as server:
+                progress(f"policy server ready on {server.address} ({spec.workers or 'no'} workers)")
+                result = run_session(server.address)
+
+        stats = {}
+        if stats_file.is_file():
+            for line in stats_file.read_text().splitlines():
+                row = json.loads(line)
+                stats[row["episode_id"]] = row
+        rows = _episode_rows(result, stats)
+        latencies = [x for s in stats.values() for x in s["latency_ms"]]
+        rep = summarise(replace(spec, views=views), rows, latencies, facts, time.monotonic() - t0)
+        rep["rig"], rep["size"] = rig, size
+        (out / "report.json").write_text(json.dumps({"summary": rep, "episodes": rows}, indent=2) + "\n")
+        (out / "report.md").write_text(format_report(rep, rows))
+        if spec.video:
+            for r in rows[: spec.video]:
+                path = write_video(
+                    Path(r["path"]), video_camera, out / "videos" / f"{Path(r['path']).stem}.mp4", r["success"]
+                )
+                progress(f"video {path}")
+        return EvalResult(rep, out, rows)

@@ -53,7 +53,7 @@ def _stop_on_signals(stop: threading.Event, announce: bool):
 
 def _train(args: argparse.Namespace) -> int:
     from services.core.config import ConfigError
-    from services.core.runtime import OutputError, output_dir
+    from services.core.runtime import OutputError, exclusive, output_dir
     from services.dataset.store import DatasetError, DatasetStore
     from services.policy.checkpoint import CheckpointError, latest_checkpoint
     from services.trainer.config import load_train_config
@@ -83,7 +83,9 @@ def _train(args: argparse.Namespace) -> int:
         cfg = load_train_config(args.config, [*overrides, *args.set])
         DatasetStore(cfg.data)  # a wrong --data: one line, and no empty run folder left behind
         # made before the dataset is loaded and the model built; taken back if nothing was written
-        with output_dir(cfg.out, "--out"), _stop_on_signals(stop, announce=dist_env()[0] == 0):
+        # one training per run folder: a second one (another terminal) would write in the same run
+        held = exclusive(cfg.out, "training") if dist_env()[0] == 0 else contextlib.nullcontext()
+        with output_dir(cfg.out, "--out"), held, _stop_on_signals(stop, announce=dist_env()[0] == 0):
             result = train(cfg, stop=stop)
     except (ConfigError, DatasetError, TrainingError, CheckpointError, OutputError) as exc:
         print(f"error: {exc}", file=sys.stderr)

@@ -97,6 +97,19 @@ def test_the_expert_row_goes_through_the_same_path(tmp_path):
     assert len(list((out / "rollouts").glob("*.mcap"))) == 2
 
 
+def test_a_second_evaluation_into_a_folder_in_use_is_refused(tmp_path):
+    """(it unlinked the first one's policy statistics and recorded over its rollouts)"""
+    from services.core.runtime import exclusive
+
+    out = tmp_path / "eval"
+    out.mkdir()
+    with exclusive(out, "evaluation"):  # as the first evaluation holds it
+        proc = viewscale("eval", "--expert", "--task", "lift", "--episodes", "1", "--out", str(out))
+    assert proc.returncode == 2 and "starting sim" not in proc.stdout, proc.stderr
+    assert proc.stderr.strip().startswith(f"error: {out} is in use by another evaluation (pid ")
+    assert not (out / "logs").exists() and not (out / "rollouts").exists()
+
+
 def test_eval_refuses_bad_input_with_one_line_before_starting_anything(tiny_checkpoint, tmp_path):
     """Each is one error line within a second, nothing written: before, most of the numbers were
     found out a few seconds in by the sim's or the session's config (a multi-line validation error),

@@ -527,3 +527,19 @@ def test_a_failed_build_leaves_no_output_folder(tmp_path, capsys):
         ["dataset", "build", "--raw", str(tmp_path / "raw"), "--out", str(tmp_path / "mine"), "--views", "FX"]
     )
     assert rc == 2 and (tmp_path / "mine" / "notes.txt").read_text() == "keep\n"
+
+
+def test_a_second_build_into_a_folder_being_built_is_refused(tmp_path, capsys):
+    """(two builds into one --out, from two terminals, wrote over each other's files)"""
+    from services.core.runtime import LOCK_FILE, exclusive
+
+    write_episode(tmp_path / "raw", "ep", 24, cameras=["F"])
+    out = tmp_path / "ds"
+    out.mkdir()
+    with exclusive(out, "dataset build"):  # as the first build holds it
+        rc = viewscale(["dataset", "build", "--raw", str(tmp_path / "raw"), "--out", str(out), "--views", "F"])
+        err = capsys.readouterr().err.strip()
+        assert rc == 2 and err.startswith(f"error: {out} is in use by another dataset build (pid "), err
+        assert sorted(p.name for p in out.iterdir()) == [LOCK_FILE]  # nothing written
+    rc = viewscale(["dataset", "build", "--raw", str(tmp_path / "raw"), "--out", str(out), "--views", "F"])
+    assert rc == 0 and not (out / LOCK_FILE).exists() and (out / "manifest.json").is_file()

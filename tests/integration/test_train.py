@@ -519,3 +519,16 @@ def test_a_run_refused_by_the_dataset_leaves_no_run_folder(sim_dataset, tmp_path
         rc = viewscale(["train", "--data", str(sim_dataset), "--out", str(out), "--steps", "1", *extra])
         assert rc == 2 and says in capsys.readouterr().err
         assert not (tmp_path / "runs").exists()  # nor the parent made for it
+
+
+def test_a_second_training_of_the_same_run_is_refused(sim_dataset, tmp_path, capsys):
+    """(two trainings of one --out, from two terminals, both resumed it and wrote checkpoints into it)"""
+    from services.core.runtime import exclusive
+
+    run = tmp_path / "run"
+    run.mkdir()
+    with exclusive(run, "training"):  # as the first training holds it
+        rc = viewscale(["train", "--data", str(sim_dataset), "--out", str(run), "--steps", "1", "--workers", "0"])
+        err = capsys.readouterr().err.strip()
+        assert rc == 2 and err.startswith(f"error: {run} is in use by another training (pid "), err
+        assert latest_checkpoint(run) is None

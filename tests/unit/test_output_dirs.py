@@ -52,3 +52,42 @@ def test_output_dir_takes_back_what_it_made_when_the_command_fails(tmp_path):
     with output_dir(tmp_path / "ok", "--out"):
         pass
     assert (tmp_path / "ok").is_dir()
+
+
+HOLD = """
+import sys, time
+from services.core.runtime import exclusive
+with exclusive(sys.argv[1], "training"):
+    print("held", flush=True)
+    time.sleep(120)
+"""
+
+
+def _holder(folder):
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    proc = subprocess.Popen([sys.executable, "-c", HOLD, str(folder)], cwd=root, stdout=subprocess.PIPE, text=True)
+    assert proc.stdout.readline() == "held\n"
+    return proc
+
+
+def test_exclusive_refuses_a_second_writer_and_frees_the_folder_when_the_first_dies(tmp_path):
+    import signal
+
+    from services.core.runtime import LOCK_FILE, exclusive
+
+    proc = _holder(tmp_path)
+    try:
+        with pytest.raises(OutputError, match=rf"^{tmp_path} is in use by another training \(pid {proc.pid} on "):
+            with exclusive(tmp_path, "training"):
+                pass
+    finally:
+        proc.send_signal(signal.SIGKILL)  # killed: the OS drops its lock, the file stays behind
+        proc.wait()
+    assert (tmp_path / LOCK_FILE).exists()
+    with exclusive(tmp_path, "training"):
+        assert (tmp_path / LOCK_FILE).read_text().startswith("pid ")
+    assert not (tmp_path / LOCK_FILE).exists()  # given up: gone
