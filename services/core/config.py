@@ -111,6 +111,13 @@ def env_overrides(environ: Mapping[str, str], prefix: str = ENV_PREFIX) -> dict[
     return merged
 
 
+# The top-level keys of the services' shared YAML file (deploy/sim.yaml, deploy/real.yaml): one
+# section per service, and the keys every section shares. A key starting with ``x-`` is the user's
+# own (YAML anchors, as in compose files).
+SECTIONS = ("sim", "camera", "robot", "teleop", "recorder", "session", "policy", "worker", "trainer")
+SHARED_KEYS = ("bus", "world")
+
+
 def read_yaml(path: str | Path) -> dict[str, Any]:
     path = Path(path)
     if not path.is_file():
@@ -178,6 +185,13 @@ def load_config(
     if yaml_path:
         raw = read_yaml(yaml_path)
         if section is not None:
+            known = {*SECTIONS, *SHARED_KEYS, section, *model.model_fields}
+            unknown = [k for k in raw if k not in known and not str(k).startswith("x-")]
+            if unknown:  # (a misspelt section was ignored: its settings never took effect)
+                raise ConfigError(
+                    f"config file {yaml_path}: {str(unknown[0])!r} is no service's section "
+                    f"(sections: {', '.join(SECTIONS)}; shared: {', '.join(SHARED_KEYS)}; x-... for your own keys)"
+                )
             body = raw.get(section, {}) or {}
             if not isinstance(body, dict):
                 raise ConfigError(f"section {section!r} of {yaml_path} must be a mapping")

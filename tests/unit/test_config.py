@@ -97,3 +97,21 @@ def test_an_address_open_beyond_loopback_is_told_apart():
         assert not open_to_others(loopback), loopback
     for open_ in ("0.0.0.0:50051", "[::]:7001", "10.0.0.5:7001", "policy-worker:7001"):
         assert open_to_others(open_), open_
+
+
+def test_a_misspelt_section_of_the_shared_file_is_an_error_not_ignored(tmp_path):
+    """(a file with `recordr:` loaded the recorder's defaults without a word)"""
+    y = tmp_path / "c.yaml"
+    y.write_text("world: sim\nbus: {connect: [tcp/a:1]}\nrecorder: {rate: 5}\nrecordr: {rate: 9}\n")
+    with pytest.raises(ConfigError, match=r"c\.yaml: 'recordr' is no service's section \(sections: sim, camera"):
+        load_config(Model, y, section="recorder")
+    # every service's section, the shared keys, and the user's own x- keys are fine
+    y.write_text("world: sim\nbus: {connect: [tcp/a:1]}\nrecorder: {rate: 5}\nsim: {}\nx-common: &c {a: 1}\n")
+    assert load_config(Model, y, section="recorder").rate == 5.0
+    from pathlib import Path
+
+    from services.core.config import SECTIONS, SHARED_KEYS, read_yaml
+
+    for shipped in ("sim.yaml", "real.yaml"):  # the shipped files name only these
+        keys = set(read_yaml(Path(__file__).resolve().parents[2] / "deploy" / shipped))
+        assert keys <= {*SECTIONS, *SHARED_KEYS}, keys
