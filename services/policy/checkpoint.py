@@ -231,18 +231,19 @@ def read_train_state(path: str | Path) -> tuple[dict[str, torch.Tensor], dict[st
     return read_weights(path / STATE_FILE), json.loads((path / STATE_JSON).read_text())
 
 
+def flat_fields(d: Any, prefix: str = "") -> dict[str, Any]:
+    """A dumped config as ``{dotted.field: value}``; ``prefix`` names ``d`` itself (a section)."""
+    if isinstance(d, dict):
+        out: dict[str, Any] = {}
+        for k, v in d.items():
+            out.update(flat_fields(v, f"{prefix}.{k}" if prefix else str(k)))
+        return out
+    return {prefix: d}
+
+
 def config_diff(a: ModelConfig, b: ModelConfig) -> list[str]:
     """Dotted field names whose values differ between two model configs."""
-
-    def flat(d: Any, prefix: str = "") -> dict[str, Any]:
-        if isinstance(d, dict):
-            out: dict[str, Any] = {}
-            for k, v in d.items():
-                out.update(flat(v, f"{prefix}{k}."))
-            return out
-        return {prefix[:-1]: d}
-
-    fa, fb = flat(a.model_dump(mode="json")), flat(b.model_dump(mode="json"))
+    fa, fb = flat_fields(a.model_dump(mode="json")), flat_fields(b.model_dump(mode="json"))
     ignore = {"encoder.vit_weights"}  # where pretrained weights came from does not change the model
     return sorted(k for k in set(fa) | set(fb) if fa.get(k) != fb.get(k) and k not in ignore)
 

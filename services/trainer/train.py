@@ -386,11 +386,6 @@ def resume_diff(info: dict[str, Any], cfg: TrainConfig, views: list[str]) -> lis
         return []
     now = cfg.model_dump(mode="json")
 
-    def flat(d: Any, prefix: str) -> dict[str, Any]:
-        if isinstance(d, dict):
-            return {k: v for key, sub in d.items() for k, v in flat(sub, f"{prefix}.{key}").items()}
-        return {prefix: d}
-
     def show(v: Any) -> str:
         return ",".join(map(str, v)) if isinstance(v, list) else str(v)
 
@@ -398,7 +393,7 @@ def resume_diff(info: dict[str, Any], cfg: TrainConfig, views: list[str]) -> lis
     if info.get("views") is not None and list(info["views"]) != views:
         out.append(f"views {show(info['views'])} (now {show(views)})")
     for name in RESUME_FIXED:
-        a, b = flat(saved.get(name), name), flat(now.get(name), name)
+        a, b = ckpt.flat_fields(saved.get(name), name), ckpt.flat_fields(now.get(name), name)
         out += [f"{k} {show(a.get(k))} (now {show(b.get(k))})" for k in sorted(a) if a[k] != b.get(k)]
     return out
 
