@@ -66,10 +66,13 @@ class PseudoDemoDataset(Dataset):
         self.demos = [d for d in store.demos if d.episode_id in keep_eps and d.view in chosen_views]
 
         states, actions, index, offsets = [], [], [], [0]
+        self.longest_segment = 0  # ticks (what a chunk needs is said when none fits)
         for j, d in enumerate(self.demos):
             states.append(d.load("state", mmap=False))
             actions.append(d.load("action", mmap=False))
-            starts = chunk_starts(d.load("ends", mmap=False), self.To, self.Tp, self.Ta)
+            ends = d.load("ends", mmap=False)
+            self.longest_segment = max(self.longest_segment, longest_segment(ends))
+            starts = chunk_starts(ends, self.To, self.Tp, self.Ta)
             index.append(np.concatenate([np.full((len(starts), 1), j, np.int64), starts], axis=1))
             offsets.append(offsets[-1] + d.rows)
         D = int(self.meta["state_dim"])
@@ -77,7 +80,6 @@ class PseudoDemoDataset(Dataset):
         self._action = np.concatenate(actions) if actions else np.zeros((0, 7), np.float32)  # (rows, 7)
         self._offset = np.asarray(offsets, np.int64)  # demo j's rows start at _offset[j]
         self.index = np.concatenate(index) if index else np.zeros((0, 4), np.int64)  # (N, 4): demo, cur, s, e
-        self.longest_segment = max((longest_segment(d.load("ends", mmap=False)) for d in self.demos), default=0)
         self._frames: OrderedDict[int, np.ndarray] = OrderedDict()
 
     def __len__(self) -> int:
