@@ -78,21 +78,7 @@ def test_no_router_is_one_error_line(tmp_path):
 def test_a_bad_timeout_or_rate_is_refused_before_connecting(args, message):
     from services.core.bus import free_tcp_port
 
-    proc = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "services.cli",
-            "episode",
-            "start",
-            "--connect",
-            f"tcp/127.0.0.1:{free_tcp_port()}",
-            *args,
-        ],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=20,  # no router listens: a negative timeout used to mean zenoh's "retry forever"
-    )
+    # no router listens: a negative timeout was zenoh's "retry forever" (it would outlast cli's 60 s)
+    proc = cli(f"tcp/127.0.0.1:{free_tcp_port()}", "start", *args)
     assert proc.returncode == 2
     assert proc.stderr.strip() == f"error: {message}"
