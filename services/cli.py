@@ -176,19 +176,14 @@ def _rerender(args: argparse.Namespace) -> int:
             # its episodes would be read back as recordings: the next run re-renders the re-renders
             raise ConfigError(f"--out {out} is a --raw folder: write the re-rendered episodes to another one")
         episodes = find_episodes([Path(p) for p in args.raw])  # a wrong --raw: no empty --out left behind
-        try:
-            with output_dir(out, "--out"):  # taken back if nothing was written in it
-                result = rerender(
-                    episodes,  # (the files found: the folders are not walked again)
-                    args.rig,
-                    Path(args.out),
-                    args.size,
-                    progress=lambda m: print(m, file=sys.stderr, flush=True),
-                )
-                if not result.written:
-                    raise _NothingWritten
-        except _NothingWritten:
-            pass
+        with output_dir(out, "--out", keep_empty=False):  # taken back if nothing was written in it
+            result = rerender(
+                episodes,  # (the files found: the folders are not walked again)
+                args.rig,
+                Path(args.out),
+                args.size,
+                progress=lambda m: print(m, file=sys.stderr, flush=True),
+            )
     except (ConfigError, DatasetError, OutputError, OSError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
@@ -201,10 +196,6 @@ def _rerender(args: argparse.Namespace) -> int:
         if e.error:
             print(f"  skipped {e.source.name}: {e.error}")
     return 0 if done and len(done) == len(result.episodes) else 1
-
-
-class _NothingWritten(Exception):
-    """A command that wrote nothing: its new output folder is taken back (``output_dir``)."""
 
 
 def _experiment(args: argparse.Namespace) -> int:

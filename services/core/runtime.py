@@ -133,26 +133,35 @@ def writable_dir(path: str | os.PathLike, argument: str) -> Path:
 
 
 @contextlib.contextmanager
-def output_dir(path: str | os.PathLike, argument: str) -> Iterator[Path]:
+def output_dir(path: str | os.PathLike, argument: str, keep_empty: bool = True) -> Iterator[Path]:
     """``writable_dir`` for a command's output, taken back when the command fails: where ``path``
     did not exist, the empty folders the block left in it, ``path`` itself and the parents made
-    for it are removed again if the block raises. A file, or a folder holding one, is never removed."""
+    for it are removed again if the block raises (or, ``keep_empty`` False, whenever the block
+    leaves them empty). A file, or a folder holding one, is never removed."""
     p = Path(path).absolute()
     made = [q for q in [p, *p.parents] if not q.exists()]  # leaf first
     writable_dir(path, argument)
     try:
         yield Path(path)
     except BaseException:
-        if made:  # ``path`` is new: every folder in it is this command's; empty ones go
-            for root, _dirs, _files in os.walk(p, topdown=False):
-                with contextlib.suppress(OSError):
-                    Path(root).rmdir()  # (fails for a folder that still holds something)
-            for q in made[1:]:
-                try:
-                    q.rmdir()
-                except OSError:
-                    break
+        _take_back(made)
         raise
+    if not keep_empty:
+        _take_back(made)
+
+
+def _take_back(made: list[Path]) -> None:
+    """Remove the empty folders in and above a new output folder (``made``: it and its new parents)."""
+    if not made:  # the folder was there before: nothing in it is the command's to remove
+        return
+    for root, _dirs, _files in os.walk(made[0], topdown=False):  # every folder in it is the command's
+        with contextlib.suppress(OSError):
+            Path(root).rmdir()  # (fails for a folder that still holds something)
+    for q in made[1:]:
+        try:
+            q.rmdir()
+        except OSError:
+            break
 
 
 LOCK_FILE = ".viewscale.lock"  # held in an output folder while a command writes there
