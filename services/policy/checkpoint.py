@@ -101,7 +101,9 @@ def resolve_checkpoint(path: str | Path) -> Path:
         raise CheckpointError(f"{path} is a file: give a checkpoint folder or a run directory")
     if (path / POLICY_FILE).is_file():
         raise CheckpointError(f"{path} is an incomplete checkpoint: it has no {MODEL_FILE}")
-    if (path / "manifest.json").is_file() and (path / "meta.json").is_file():
+    from services.dataset.store import MANIFEST, META  # (only here: a path that is no checkpoint)
+
+    if (path / MANIFEST).is_file() and (path / META).is_file():
         raise CheckpointError(
             f"{path} is a dataset, not a checkpoint: train a policy on it (viewscale train --data {path})"
         )
