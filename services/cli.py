@@ -242,13 +242,9 @@ def _episode(args: argparse.Namespace) -> int:
     from services.core.bus import Bus, BusConfig
     from services.recorder.control import describe_reply, episode_control, episode_request
 
-    for flag, value in (("--timeout", args.timeout), ("--hz", args.hz)):
+    for flag, value, unit in (("--timeout", args.timeout, "seconds"), ("--hz", args.hz, "Hz")):
         if not 0 < value < math.inf:  # a timeout of -1 would be zenoh's "forever"; nan or inf: no number at all
-            print(
-                f"error: {flag} must be a positive number of {'seconds' if flag == '--timeout' else 'Hz'}, "
-                f"got {value:g}",
-                file=sys.stderr,
-            )
+            print(f"error: {flag} must be a positive number of {unit}, got {value:g}", file=sys.stderr)
             return 2
     req = episode_request(
         args.action,

@@ -311,10 +311,10 @@ def _read_manifest(out: Path) -> dict[str, Any]:
 def _check_output(out: Path) -> None:
     if out.exists() and not out.is_dir():
         raise DatasetError(f"output {out} exists and is not a directory")
-    mine = {LOCK_FILE}  # (the lock a build holds while it writes: ``viewscale dataset build``)
+    # (LOCK_FILE: the lock a build holds while it writes, ``viewscale dataset build``)
     if (
         out.is_dir()
-        and any(p.name not in mine for p in out.iterdir())
+        and any(p.name != LOCK_FILE for p in out.iterdir())
         and not ((out / MANIFEST).exists() or (out / EPISODES).is_dir())
     ):
         raise DatasetError(f"output {out} is a non-empty directory that is not a viewscale dataset")

@@ -8,9 +8,9 @@ Settings: preset < --config YAML < VIEWSCALE_<FIELD> env < the flags below < --s
 Running it again with the same --out resumes from the run's latest checkpoint, with the same seed,
 batch size, views, cond_dropout, optim and ema settings (a change of these is refused, naming it;
 steps, device, workers, logging, validation and checkpointing may change; another number of
-torchrun processes is allowed, with a warning: each step then takes another number of samples). Ctrl-C (SIGINT, SIGTERM,
-SIGHUP; under torchrun, to any rank) stops every rank after the same step and saves it; a second one
-stops at once, back to the latest checkpoint.
+torchrun processes is allowed, with a warning: each step then takes another number of samples).
+Ctrl-C (SIGINT, SIGTERM, SIGHUP; under torchrun, to any rank) stops every rank after the same step
+and saves it; a second one stops at once, back to the latest checkpoint.
 """
 
 from __future__ import annotations
