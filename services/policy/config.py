@@ -18,6 +18,11 @@ PLACEMENTS: tuple[str, ...] = get_args(Placement)
 Precision = Literal["fp32", "bf16"]
 PRECISIONS: tuple[str, ...] = get_args(Precision)
 
+# farthest a request's end effector may be from the robot's base (ServerConfig.max_reach_m): far
+# past any arm's reach, short of a position given in millimetres (450 mm read as 450 m) or of one
+# that overflows the model's float32 passes into a chunk that is not finite
+MAX_REACH_M = 10.0
+
 
 def _host_port(value: object) -> str:
     value = str(value)  # (a bare port arrives from YAML as an int)
@@ -109,6 +114,8 @@ class ServerConfig(Frozen):
     # unanswered as long again: a frozen or cut-off replica behind a balanced address is left
     worker_keepalive_s: float = Field(5.0, ge=1.0)
     max_sessions: int = Field(256, ge=1)  # robot sessions kept (idle ones are forgotten first)
+    # a request's end effector farther than this from the base (m) is refused: INVALID_ARGUMENT
+    max_reach_m: float = Field(MAX_REACH_M, gt=0, allow_inf_nan=False)
     max_message_mb: int = Field(16, ge=1)  # gRPC message size cap, both ways
     log_level: LogLevel = "INFO"  # logging level of the process
 

@@ -24,6 +24,7 @@ from services.core.normalizer import Normalizer
 from services.core.tensors import FrameSizeError, decode_resized, from_tensor
 from services.pb.policy_pb2 import ActionRequest
 from services.policy.aggregation import CompositionError, renormalise
+from services.policy.config import MAX_REACH_M
 
 MAX_SESSION_ID = 128
 MAX_JPEG_BYTES = 8 << 20  # one frame
@@ -146,7 +147,7 @@ def _finite(values, n: int, name: str) -> np.ndarray:
     return arr
 
 
-def parse(req: ActionRequest, spec: PolicySpec, default_views: list[str]) -> Parsed:
+def parse(req: ActionRequest, spec: PolicySpec, default_views: list[str], max_reach_m: float = MAX_REACH_M) -> Parsed:
     """Check every field of ``req``; raise InvalidRequest naming the first bad one."""
     sid = req.session_id
     if not sid or len(sid) > MAX_SESSION_ID or not sid.isprintable():
@@ -204,7 +205,13 @@ def parse(req: ActionRequest, spec: PolicySpec, default_views: list[str]) -> Par
         raise InvalidRequest(f"states: expected {spec.To} states, got {len(req.states)}")
     pos, quat, grip = [], [], []
     for i, s in enumerate(req.states):
-        pos.append(_finite(s.eef_pos, 3, f"states[{i}].eef_pos"))
+        p = _finite(s.eef_pos, 3, f"states[{i}].eef_pos")
+        if (reach := float(np.linalg.norm(p))) > max_reach_m:
+            raise InvalidRequest(
+                f"states[{i}].eef_pos: {reach:.4g} m from the robot's base, farther than {max_reach_m:g} m "
+                "(positions are in metres, in the base frame; the server's max_reach_m)"
+            )
+        pos.append(p)
         q = _finite(s.eef_quat_wxyz, 4, f"states[{i}].eef_quat_wxyz")
         if abs(np.linalg.norm(q) - 1.0) > 1e-3:
             raise InvalidRequest(f"states[{i}].eef_quat_wxyz: not a unit quaternion (norm {np.linalg.norm(q):.4f})")

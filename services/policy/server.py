@@ -62,7 +62,7 @@ from services.policy.aggregation import (
     view_transform,
 )
 from services.policy.checkpoint import checkpoint_sha256, model_id, read_info
-from services.policy.config import PLACEMENTS, open_to_others
+from services.policy.config import MAX_REACH_M, PLACEMENTS, open_to_others
 from services.policy.model.diffusion import make_inference_scheduler
 from services.policy.model.policy import NoiseConfig
 from services.policy.observation import CameraSpec, InvalidRequest, Parsed, PolicySpec, model_inputs, parse
@@ -94,6 +94,10 @@ class Unavailable(RuntimeError):
 
 class Superseded(RuntimeError):
     """A newer request of the same session (or a reset) took over: this one stops between steps."""
+
+
+class NotFinite(RuntimeError):
+    """The model predicted a noise that is not finite: no chunk is made of it."""
 
 
 # -- the composed sampler, for any backend ------------------------------------------------------
@@ -193,6 +197,13 @@ async def sample_composed(
             raise Unavailable(
                 f"no view answered step {k}: " + "; ".join(f"{v}: {w}" for v, w in denoiser.dropped.items())
             )
+        bad = [
+            v
+            for v in order
+            if (v in eps and not np.isfinite(eps[v]).all()) or (v in eps_u and not np.isfinite(eps_u[v]).all())
+        ]
+        if bad:  # a chunk made of it would be NaN: a robot must never be sent one
+            raise NotFinite(f"the model's noise prediction for {', '.join(bad)} at step {k} is not finite")
         if unconditional:
             e = compose_with_unconditional(eps, eps_u, G, {v: 1.0 for v in eps}, order)
         else:
@@ -750,12 +761,14 @@ class PolicyService(policy_pb2_grpc.PolicyServicer):
         max_sessions: int = 256,
         request_timeout_s: float = DEFAULT_TIMEOUT_S,
         precision: str = "fp32",
+        max_reach_m: float = MAX_REACH_M,
     ):
         self.spec = spec
         self.precision = precision  # what the model's passes compute in (PolicyInfo), wherever they run
         self.default_views = default_views
         self.max_sessions = max_sessions
         self.request_timeout_s = request_timeout_s
+        self.max_reach_m = max_reach_m
         self.scheduler = make_inference_scheduler(noise)
         self.backend: Any = None  # () -> Denoiser, set once the model or the workers are ready
         self.sessions: dict[str, Session] = {}
@@ -828,7 +841,7 @@ class PolicyService(policy_pb2_grpc.PolicyServicer):
         if self.backend is None:
             await context.abort(grpc.StatusCode.UNAVAILABLE, "the model is still loading (health: NOT_SERVING)")
         try:
-            parsed = parse(request, self.spec, self.default_views)
+            parsed = parse(request, self.spec, self.default_views, self.max_reach_m)
         except InvalidRequest as exc:
             await context.abort(grpc.StatusCode.INVALID_ARGUMENT, str(exc))
         session = self._session(parsed.session_id)
@@ -884,6 +897,9 @@ class PolicyService(policy_pb2_grpc.PolicyServicer):
             await context.abort(grpc.StatusCode.UNAVAILABLE, str(exc))
         except CompositionError as exc:
             await context.abort(grpc.StatusCode.INVALID_ARGUMENT, str(exc))
+        except NotFinite as exc:
+            log.warning("GetAction seq %d of %s: %s", parsed.seq, parsed.session_id, exc)
+            await context.abort(grpc.StatusCode.INTERNAL, f"{exc}: no action sent")
         finally:
             await denoiser.close()
         actions = chunk_to_base(result.chunk, self.spec, result.reference, parsed.eef_quat_wxyz[-1])
@@ -1110,7 +1126,7 @@ async def serve_policy(cfg, stop: asyncio.Event, worker_addresses: list[str], an
 
     spec, noise, _ = load_spec(cfg)
     views = list(cfg.views or spec.train_views)
-    service = PolicyService(spec, noise, views, cfg.max_sessions, cfg.request_timeout_s, cfg.precision)
+    service = PolicyService(spec, noise, views, cfg.max_sessions, cfg.request_timeout_s, cfg.precision, cfg.max_reach_m)
     interceptors = [BearerTokenInterceptor(cfg.token)] if cfg.token else []
     server = grpc.aio.server(
         interceptors=interceptors,

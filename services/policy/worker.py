@@ -149,14 +149,18 @@ class ModelEngine:
         want = (c.obs_horizon, *c.image_size, 3)
         if frames.dtype != np.uint8 or frames.shape != want:
             raise ValueError(f"frames must be uint8 {want}, got {frames.dtype} {frames.shape}")
-        if state.shape != (c.obs_horizon, c.state_dim) or not np.isfinite(state).all():
-            raise ValueError(f"state must be finite float32 {(c.obs_horizon, c.state_dim)}, got {state.shape}")
+        if state.shape != (c.obs_horizon, c.state_dim):
+            raise ValueError(f"state must be float32 {(c.obs_horizon, c.state_dim)}, got {state.shape}")
+        if not np.isfinite(state).all():
+            raise ValueError("state is not finite")
 
     def check_chunk(self, x: np.ndarray, k: int) -> None:
         """ValueError unless x is a finite (Tp, Da) chunk and k a training timestep."""
         c = self.policy.cfg
-        if x.shape != (c.pred_horizon, c.action_dim) or not np.isfinite(x).all():
-            raise ValueError(f"x must be finite float32 {(c.pred_horizon, c.action_dim)}, got {x.shape}")
+        if x.shape != (c.pred_horizon, c.action_dim):
+            raise ValueError(f"x must be float32 {(c.pred_horizon, c.action_dim)}, got {x.shape}")
+        if not np.isfinite(x).all():
+            raise ValueError("x is not finite")
         if not 0 <= k < c.noise.num_train_timesteps:
             raise ValueError(f"timestep {k} is outside 0..{c.noise.num_train_timesteps - 1}")
 

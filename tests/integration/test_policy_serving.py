@@ -481,9 +481,12 @@ def test_malformed_requests_are_refused_with_the_field_and_the_server_stays_up(c
                     b"\xff\xd8" + bytes(rng.integers(0, 255, 300, dtype=np.uint8)) + b"\xff\xd9"
                 )
                 return req, "undecodable JPEG"
-            if kind == 3:
+            if i % 24 == 3:
                 req.states[1].eef_pos[0] = float("nan")
                 return req, "states[1].eef_pos: not finite"
+            if kind == 3:  # millimetres for metres
+                req.states[1].eef_pos[:] = [450.0, 0.0, 300.0]
+                return req, "states[1].eef_pos: 540.8 m from the robot's base, farther than 10 m"
             if kind == 4:
                 del req.states[0].eef_quat_wxyz[:]
                 return req, "states[0].eef_quat_wxyz: expected 4 values"
@@ -529,6 +532,33 @@ def test_malformed_requests_are_refused_with_the_field_and_the_server_stays_up(c
         assert good_client.get_action(frames, states).actions.shape == (16, 7)  # still answering
     finally:
         stop(proc)
+
+
+def test_a_chunk_that_is_not_finite_is_never_sent(checkpoint, observations):
+    """A position the reach bound lets through (raised here) but the model's float32 passes overflow
+    on: the request fails with INTERNAL, in-process and through a worker, and no NaN action reaches
+    the robot; the server answers the next good request."""
+    frames, states = observations[0]
+    far = [State(np.array([1e30, 0.0, 0.0]), s.eef_quat_wxyz, s.gripper, s.stamp_ns) for s in states]
+    worker = start_worker(checkpoint)
+    servers = [
+        start_server(checkpoint, "--in-process", "--set", "max_reach_m=1e38"),
+        start_server(checkpoint, *worker_flags([worker]), "--set", "max_reach_m=1e38"),
+    ]
+    try:
+        for _, addr in servers:
+            with PolicyClient(addr, session_id="far") as client:
+                with pytest.raises(PolicyError) as err:
+                    client.get_action(frames, far, views=["F", "FL"])
+                assert err.value.code == grpc.StatusCode.INTERNAL, err.value
+                assert "noise prediction for F, FL at step" in str(err.value), err.value
+                assert "is not finite: no action sent" in str(err.value), err.value
+                chunk = client.get_action(frames, states, views=["F", "FL"])
+                assert np.isfinite(chunk.actions).all() and not chunk.degraded, chunk
+    finally:
+        for proc, _ in servers:
+            stop(proc)
+        stop(worker[0])
 
 
 def test_a_newer_request_of_a_session_cancels_the_older_and_sessions_are_separate(checkpoint, observations):
