@@ -144,7 +144,11 @@ def add_train_command(subparsers: argparse._SubParsersAction) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("--data", help="dataset directory (default data/ds)")
-    p.add_argument("--out", help="run directory; an existing run is resumed (default runs/default)")
+    p.add_argument(
+        "--out",
+        help="run directory: new, empty, or an existing run (resumed); a folder of other files is refused "
+        "(default runs/default)",
+    )
     p.add_argument("--preset", help="hyper-parameter preset: tiny (default), paper, ...; an unknown name lists them")
     p.add_argument("--steps", type=int, help="total optimisation steps")
     p.add_argument("--batch-size", type=int, help="samples per step (per process)")

@@ -30,8 +30,9 @@ import torch.distributed as dist
 from torch.utils.data import DataLoader, Dataset, Sampler
 
 from services.core.config import ConfigError
+from services.core.runtime import LOCK_FILE
 from services.dataset.pseudo_demos import no_chunk_fits
-from services.dataset.store import DatasetError
+from services.dataset.store import MANIFEST, DatasetError
 from services.policy import checkpoint as ckpt
 from services.policy.model.diffusion import compute_loss, make_train_scheduler
 from services.policy.model.fastpath import ema_update, gemm_conv1d_pays_off, make_optimizer, use_gemm_conv1d
@@ -398,6 +399,29 @@ def resume_diff(info: dict[str, Any], cfg: TrainConfig, views: list[str]) -> lis
     return out
 
 
+RUN_FILES = ("config.json", "checkpoints", "log.jsonl")  # what a run folder holds from its first step
+
+
+def check_run_dir(out: Path) -> None:
+    """ConfigError unless ``out`` is missing, empty or a training run: the run's files would go in
+    among others' (the dataset trained on, recorded episodes, a checkpoint), and a later training
+    in there would take them for a run of its own."""
+    held = sorted(p.name for p in out.iterdir() if p.name != LOCK_FILE) if out.is_dir() else []
+    if not held or any(name in held for name in RUN_FILES):
+        return
+    advice = "choose a new or empty folder for the run"
+    if MANIFEST in held:
+        what = "a dataset"
+    elif ckpt.MODEL_FILE in held:
+        what = "a checkpoint"
+    elif ckpt.LATEST in held and out.name == "checkpoints":
+        what, advice = "a run's checkpoints folder", f"give the run's folder, {out.parent}, to resume it"
+    else:
+        shown = ", ".join(held[:3]) + (f" and {len(held) - 3} more" if len(held) > 3 else "")
+        what = f"a folder of other files ({shown})"
+    raise ConfigError(f"out {out} is {what}, not a training run: {advice}")
+
+
 def train(
     cfg: TrainConfig,
     data: TrainData | None = None,
@@ -414,6 +438,7 @@ def train(
         torch.cuda.set_device(device)
     main = rank == 0
     out = Path(cfg.out)
+    check_run_dir(out)
 
     data = data or load_train_data(cfg)
     space = check_action_space(cfg, data.meta)

@@ -509,6 +509,32 @@ def test_a_wrong_data_folder_is_one_error_line_and_leaves_no_run_folder(tmp_path
     assert not (tmp_path / "run").exists()
 
 
+def test_an_out_that_holds_something_else_is_refused_and_left_as_it_was(sim_dataset, tmp_path, capsys):
+    """(a run went in among the files of the dataset itself, of the recordings, of a checkpoint)"""
+    recordings = tmp_path / "raw"
+    recordings.mkdir()
+    for name in ("a.mcap", "b.mcap", "c.mcap", "notes.txt"):
+        (recordings / name).write_text("kept")
+    ckpt_dir = tmp_path / "run" / "checkpoints" / "step_0000001"
+    ckpt_dir.mkdir(parents=True)
+    (ckpt_dir / "model.safetensors").write_text("kept")
+    (ckpt_dir.parent / "latest").write_text(ckpt_dir.name)
+    for out, says in [
+        (sim_dataset, "is a dataset, not a training run: choose a new or empty folder for the run"),
+        (recordings, "is a folder of other files (a.mcap, b.mcap, c.mcap and 1 more), not a training run"),
+        (ckpt_dir, "is a checkpoint, not a training run"),
+        (
+            ckpt_dir.parent,
+            f"is a run's checkpoints folder, not a training run: give the run's folder, {ckpt_dir.parents[1]}",
+        ),
+    ]:
+        before = sorted(p.relative_to(out) for p in out.rglob("*"))
+        rc = viewscale(["train", "--data", str(sim_dataset), "--out", str(out), "--steps", "1", "--workers", "0"])
+        err = capsys.readouterr().err.strip()
+        assert rc == 2 and err.startswith(f"error: out {out} ") and says in err, err
+        assert sorted(p.relative_to(out) for p in out.rglob("*")) == before  # nothing written, nothing removed
+
+
 def test_a_run_refused_by_the_dataset_leaves_no_run_folder(sim_dataset, tmp_path, capsys):
     """(a view the dataset lacks, or another action space, left --out behind, empty)"""
     for extra, says in [
