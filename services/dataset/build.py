@@ -41,6 +41,7 @@ from services.dataset.episodes import (
 from services.dataset.pseudo_demos import PseudoDemo, chunk_starts, longest_segment, make_pseudo_demo, no_chunk_fits
 from services.dataset.store import CONTACT_SHEET, EPISODES, MANIFEST, META, NORMALIZER, SUMMARY, VERSION, DatasetError
 from services.dataset.summary import ACTION_LAYOUT, summarise
+from services.recorder.reader import EpisodeReadError, read_episode
 
 
 @dataclass(frozen=True)
@@ -165,6 +166,28 @@ def find_episodes(raw: Path | list[Path]) -> list[Path]:
             raise DatasetError(f"two episodes named {f.stem}: {stems[f.stem]} and {f}")
         stems[f.stem] = f
     return found
+
+
+FAILED = "not marked successful"  # why an episode is left out of a build (without --include-failed)
+
+
+def successful(sources: list[Path]) -> tuple[list[Path], list[dict[str, str]]]:
+    """The episode files marked successful, and the others as {file, episode, reason}: a
+    demonstration stopped as a failure, an evaluation's failed rollout, a recovered episode nobody
+    stopped. A file whose metadata cannot be read is kept: the build reports it (or skips it)."""
+    kept: list[Path] = []
+    left: list[dict[str, str]] = []
+    for src in sources:
+        try:
+            md = read_episode(src, topics=()).metadata
+        except EpisodeReadError:
+            kept.append(src)
+            continue
+        if md.get("success"):
+            kept.append(src)
+        else:
+            left.append({"file": str(src), "episode": str(md.get("episode_id") or src.stem), "reason": FAILED})
+    return kept, left
 
 
 def _jpeg_size(data: bytes) -> tuple[int, int] | None:
@@ -594,8 +617,10 @@ def build_dataset(
     force: bool = False,
     contact_episodes: int = 3,
     jobs: int = 1,
+    include_failed: bool = False,
 ) -> BuildResult:
-    """Build (or bring up to date) the dataset at ``out`` from the episodes under ``raw``.
+    """Build (or bring up to date) the dataset at ``out`` from the episodes under ``raw``: those
+    marked successful, or every one with ``include_failed``.
 
     ``jobs`` > 1 decodes that many episodes at once (threads); results are taken in order.
     """
@@ -603,11 +628,26 @@ def build_dataset(
     out = Path(out)
     sources = find_episodes(raw)
     _check_output(out)
+    left_out: list[dict[str, str]] = []
+    if not include_failed:
+        sources, left_out = successful(sources)
+        if left_out:
+            ids = ", ".join(x["episode"] for x in left_out[:5]) + (", ..." if len(left_out) > 5 else "")
+            progress(f"left out {len(left_out)} episodes {FAILED} ({ids}): --include-failed builds them too")
+        if not sources:
+            raise DatasetError(
+                f"none of the {len(left_out)} episodes is marked successful (stopped as a failure, a failed "
+                "rollout, or recovered after a crash): a failure taught as a demonstration is learnt; "
+                "--include-failed builds them anyway"
+            )
     old = _read_manifest(out)
     hashes, stats = _hash_sources(sources, old, force, progress)
     wanted = _manifest(params, sources, hashes, stats)
     if old and not force and _is_up_to_date(out, old, wanted) and _calibrations_hold(out, old, params):
         summary = json.loads((out / SUMMARY).read_text())
+        if summary.get("left_out_episodes", []) != left_out:  # (the files left out may differ from the last build's)
+            summary["left_out_episodes"] = left_out
+            _write_json(out / SUMMARY, summary)
         progress(f"{out} is up to date ({len(sources)} episodes unchanged)")
         return BuildResult(out, True, reused=len(sources), seconds=time.perf_counter() - t0, summary=summary)
 
@@ -634,7 +674,7 @@ def build_dataset(
             f"warning: image size {w}x{h} is larger than the recorded frames ({', '.join(smaller)}): "
             "they are upscaled, which adds no detail and costs disk and memory"
         )
-    summary = summarise(out, params, got.episodes, norm, got.skipped, (train, val))
+    summary = summarise(out, params, got.episodes, norm, got.skipped, (train, val), left_out)
     if summary["samples"] == 0:  # (before: "samples 0" in the summary, and later "the training set is empty")
         longest = max(
             (

@@ -80,6 +80,7 @@ def _build(args: argparse.Namespace) -> int:
                 force=args.force,
                 contact_episodes=args.contact_episodes,
                 jobs=args.jobs,
+                include_failed=args.include_failed,
             )
     except (DatasetError, EpisodeError, OutputError) as exc:
         return _err(str(exc))
@@ -177,6 +178,12 @@ def add_dataset_commands(subparsers: argparse._SubParsersAction) -> None:
         type=float,
         default=CALIBRATION_MAX_AGE_DAYS,
         help=f"a calibration made longer than this before an episode is stale (default {CALIBRATION_MAX_AGE_DAYS:g})",
+    )
+    b.add_argument(
+        "--include-failed",
+        action="store_true",
+        help="also build the episodes not marked successful (stopped as a failure, an evaluation's failed "
+        "rollouts, recovered after a crash); left out by default, and listed",
     )
     b.add_argument("--skip-bad", action="store_true", help="skip unreadable episodes instead of stopping")
     b.add_argument("--force", action="store_true", help="rebuild every episode even if nothing changed")

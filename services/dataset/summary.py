@@ -3,6 +3,7 @@ text ``viewscale dataset build`` and ``info`` print from it."""
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -25,9 +26,10 @@ def summarise(
     norm: Normalizer,
     skipped: list[dict[str, str]],
     split: tuple[list[str], list[str]],
+    left_out: Sequence[dict[str, str]] = (),
 ) -> dict[str, Any]:
     """The summary of a build: ``episodes`` as the build lists them (id, dir, info); ``split``
-    the (train, val) episode ids."""
+    the (train, val) episode ids; ``left_out`` the episodes not built ({file, episode, reason})."""
     acts, samples_per_view, rows_per_view = [], {v: 0 for v in params.views}, {v: 0 for v in params.views}
     drops: dict[str, Any] = {k: 0 for k in EPISODE_DROPS}
     drops["views"] = {v: {k: 0 for k in VIEW_DROPS} for v in params.views}
@@ -68,6 +70,7 @@ def summarise(
         "flagged_episodes": {e["id"]: e["info"]["meta"]["flags"] for e in episodes if e["info"]["meta"].get("flags")},
         "drops": drops,
         "skipped_episodes": skipped,
+        "left_out_episodes": list(left_out),
         "action_stats": {
             "layout": ACTION_LAYOUT,
             "mean": stat(np.mean),
@@ -129,6 +132,14 @@ def format_summary(s: dict[str, Any], path: Path | None = None) -> str:
         lines.append(
             f"  flagged       {len(s['flagged_episodes'])} episodes: "
             + "; ".join(f"{k}: {', '.join(v)}" for k, v in list(s["flagged_episodes"].items())[:5])
+        )
+    if s.get("left_out_episodes"):
+        left = s["left_out_episodes"]
+        lines.append(
+            f"  left out      {len(left)} episodes not marked successful: "
+            + ", ".join(x["episode"] for x in left[:5])
+            + (", ..." if len(left) > 5 else "")
+            + " (--include-failed builds them)"
         )
     if s.get("skipped_episodes"):
         lines.append(

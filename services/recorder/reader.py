@@ -86,7 +86,8 @@ def _decoder_for(topic: str, schema, fallback: DecoderFactory):
 
 
 def read_episode(path: str | Path, topics: Iterable[str] | None = None) -> Episode:
-    """Read ``path`` (a closed episode); ``topics`` limits which channels are decoded."""
+    """Read ``path`` (a closed episode); ``topics`` limits which channels are decoded (none: only
+    its metadata is read)."""
     path = Path(path)
     if not path.is_file():
         hint = (
@@ -116,6 +117,8 @@ def read_episode(path: str | Path, topics: Iterable[str] | None = None) -> Episo
                 raise EpisodeReadError(f"{path} has no '{EPISODE_RECORD}' metadata record (not a closed episode)")
             episode = Episode(path=path, metadata=record_to_dict(raw[EPISODE_RECORD]), raw_metadata=raw)
             decoders: dict[int, object] = {}
+            if wanted is not None and not wanted:  # topics=(): the metadata alone, without reading the chunks
+                return episode
             for schema, channel, message in reader.iter_messages(log_time_order=False):
                 if wanted is not None and channel.topic not in wanted:
                     continue

@@ -543,3 +543,44 @@ def test_a_second_build_into_a_folder_being_built_is_refused(tmp_path, capsys):
         assert sorted(p.name for p in out.iterdir()) == [LOCK_FILE]  # nothing written
     rc = viewscale(["dataset", "build", "--raw", str(tmp_path / "raw"), "--out", str(out), "--views", "F"])
     assert rc == 0 and not (out / LOCK_FILE).exists() and (out / "manifest.json").is_file()
+
+
+def test_episodes_not_marked_successful_are_left_out_unless_asked_for(tmp_path, capsys):
+    """(a demonstration stopped as a failure, and a policy's failed rollout in a folder under --raw,
+    were built and trained on as demonstrations, without a word)"""
+    raw = tmp_path / "raw"
+    write_episode(raw, "good-0", 24, cameras=["F"], seed=0)
+    write_episode(raw, "good-1", 24, cameras=["F"], seed=1)
+    write_episode(raw / "eval" / "rollouts", "failed-rollout", 24, cameras=["F"], seed=2, success=False)
+    out = tmp_path / "ds"
+
+    def build(*extra: str) -> tuple[int, str, str]:
+        rc = viewscale(["dataset", "build", "--raw", str(raw), "--out", str(out), "--views", "F", *extra])
+        got = capsys.readouterr()
+        return rc, got.out, got.err
+
+    rc, text, err = build()
+    assert rc == 0, err
+    assert "left out 1 episodes not marked successful (failed-rollout): --include-failed builds them too" in err
+    assert "left out      1 episodes not marked successful: failed-rollout (--include-failed builds them)" in text
+    store = DatasetStore(out)
+    assert [e["id"] for e in store.meta["episodes"]] == ["good-0", "good-1"]
+    assert store.summary["left_out_episodes"] == [
+        {
+            "file": str(raw / "eval" / "rollouts" / "failed-rollout.mcap"),
+            "episode": "failed-rollout",
+            "reason": "not marked successful",
+        }
+    ]
+    rc, text, err = build()  # nothing changed: up to date, and still says what it leaves out
+    assert rc == 0 and "up to date" in text and "failed-rollout" in text
+    rc, text, err = build("--include-failed")
+    assert rc == 0 and "left out" not in text + err
+    store = DatasetStore(out)
+    assert sorted(e["id"] for e in store.meta["episodes"]) == ["failed-rollout", "good-0", "good-1"]
+    assert store.summary["successful_episodes"] == 2 and store.summary["left_out_episodes"] == []
+    # nothing successful at all: one line, and no dataset
+    rc = viewscale(["dataset", "build", "--raw", str(raw / "eval"), "--out", str(tmp_path / "none"), "--views", "F"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "error: none of the 1 episodes is marked successful" in err and "--include-failed" in err
+    assert not (tmp_path / "none").exists()
