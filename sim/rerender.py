@@ -157,6 +157,7 @@ def rerender_episode(
         meta.stale_ticks = int(md.get("stale_ticks") or 0)
         meta.clipped_ticks = int(md.get("clipped_ticks") or 0)
         meta.flags.extend(md.get("flags") or [])
+        meta.command_sources.extend(md.get("command_sources") or [])
         meta.end_ns = int(md.get("end_ns") or time.time_ns())
         writer.write_message(EPISODE_CHANNEL, meta, meta.end_ns, meta.end_ns)
         writer.flush()

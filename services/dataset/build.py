@@ -40,7 +40,7 @@ from services.dataset.episodes import (
 )
 from services.dataset.pseudo_demos import PseudoDemo, chunk_starts, longest_segment, make_pseudo_demo, no_chunk_fits
 from services.dataset.store import CONTACT_SHEET, EPISODES, MANIFEST, META, NORMALIZER, SUMMARY, VERSION, DatasetError
-from services.dataset.summary import ACTION_LAYOUT, summarise
+from services.dataset.summary import ACTION_LAYOUT, FAILED, ROLLOUT, left_out_lines, summarise
 from services.recorder.reader import EpisodeReadError, read_episode
 
 
@@ -168,13 +168,19 @@ def find_episodes(raw: Path | list[Path]) -> list[Path]:
     return found
 
 
-FAILED = "not marked successful"  # why an episode is left out of a build (without --include-failed)
+# EefCommand.source of a policy's commands: the teleop service sends its driver's type, and the
+# policy driver's is this (PolicyTeleopConfig.type; not imported: it would bring in the bus)
+POLICY_SOURCE = "policy"
 
 
-def successful(sources: list[Path]) -> tuple[list[Path], list[dict[str, str]]]:
-    """The episode files marked successful, and the others as {file, episode, reason}: a
-    demonstration stopped as a failure, an evaluation's failed rollout, a recovered episode nobody
-    stopped. A file whose metadata cannot be read is kept: the build reports it (or skips it)."""
+def demonstrations(
+    sources: list[Path], include_failed: bool = False, include_rollouts: bool = False
+) -> tuple[list[Path], list[dict[str, str]]]:
+    """The episode files to learn from, and the others as {file, episode, reason}: not marked
+    successful (a demonstration stopped as a failure, an evaluation's failed rollout, a recovered
+    episode nobody stopped), or driven by a policy (a rollout, successful or not: what the policy
+    already does, not a demonstration). Only each file's metadata is read; a file whose metadata
+    cannot be read is kept, so that the build reports it (or --skip-bad skips it)."""
     kept: list[Path] = []
     left: list[dict[str, str]] = []
     for src in sources:
@@ -183,10 +189,18 @@ def successful(sources: list[Path]) -> tuple[list[Path], list[dict[str, str]]]:
         except EpisodeReadError:
             kept.append(src)
             continue
-        if md.get("success"):
-            kept.append(src)
+        why = [
+            reason
+            for reason, leave in (
+                (FAILED, not md.get("success") and not include_failed),
+                (ROLLOUT, POLICY_SOURCE in md.get("command_sources", []) and not include_rollouts),
+            )
+            if leave
+        ]
+        if why:
+            left.append({"file": str(src), "episode": str(md.get("episode_id") or src.stem), "reason": ", ".join(why)})
         else:
-            left.append({"file": str(src), "episode": str(md.get("episode_id") or src.stem), "reason": FAILED})
+            kept.append(src)
     return kept, left
 
 
@@ -618,9 +632,11 @@ def build_dataset(
     contact_episodes: int = 3,
     jobs: int = 1,
     include_failed: bool = False,
+    include_rollouts: bool = False,
 ) -> BuildResult:
-    """Build (or bring up to date) the dataset at ``out`` from the episodes under ``raw``: those
-    marked successful, or every one with ``include_failed``.
+    """Build (or bring up to date) the dataset at ``out`` from the demonstrations under ``raw``:
+    the episodes marked successful that no policy drove (``demonstrations``), unless
+    ``include_failed`` / ``include_rollouts`` take those too.
 
     ``jobs`` > 1 decodes that many episodes at once (threads); results are taken in order.
     """
@@ -628,18 +644,15 @@ def build_dataset(
     out = Path(out)
     sources = find_episodes(raw)
     _check_output(out)
-    left_out: list[dict[str, str]] = []
-    if not include_failed:
-        sources, left_out = successful(sources)
-        if left_out:
-            ids = ", ".join(x["episode"] for x in left_out[:5]) + (", ..." if len(left_out) > 5 else "")
-            progress(f"left out {len(left_out)} episodes {FAILED} ({ids}): --include-failed builds them too")
-        if not sources:
-            raise DatasetError(
-                f"none of the {len(left_out)} episodes is marked successful (stopped as a failure, a failed "
-                "rollout, or recovered after a crash): a failure taught as a demonstration is learnt; "
-                "--include-failed builds them anyway"
-            )
+    sources, left_out = demonstrations(sources, include_failed, include_rollouts)
+    for line in left_out_lines(left_out):
+        progress(line)
+    if not sources:
+        raise DatasetError(
+            f"none of the {len(left_out)} episodes is a demonstration to learn from ("
+            + "; ".join(left_out_lines(left_out))
+            + ")"
+        )
     old = _read_manifest(out)
     hashes, stats = _hash_sources(sources, old, force, progress)
     wanted = _manifest(params, sources, hashes, stats)

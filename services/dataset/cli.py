@@ -81,6 +81,7 @@ def _build(args: argparse.Namespace) -> int:
                 contact_episodes=args.contact_episodes,
                 jobs=args.jobs,
                 include_failed=args.include_failed,
+                include_rollouts=args.include_rollouts,
             )
     except (DatasetError, EpisodeError, OutputError) as exc:
         return _err(str(exc))
@@ -184,6 +185,12 @@ def add_dataset_commands(subparsers: argparse._SubParsersAction) -> None:
         action="store_true",
         help="also build the episodes not marked successful (stopped as a failure, an evaluation's failed "
         "rollouts, recovered after a crash); left out by default, and listed",
+    )
+    b.add_argument(
+        "--include-rollouts",
+        action="store_true",
+        help="also build the episodes a policy drove (its commands' source is 'policy': evaluation and "
+        "deployment rollouts, successful ones too); left out by default, and listed",
     )
     b.add_argument("--skip-bad", action="store_true", help="skip unreadable episodes instead of stopping")
     b.add_argument("--force", action="store_true", help="rebuild every episode even if nothing changed")

@@ -14,6 +14,22 @@ from services.core.normalizer import Normalizer
 from services.dataset.pseudo_demos import chunk_starts
 from services.dataset.store import EPISODES
 
+# why an episode is left out of a build: its reason, and the flag that builds it anyway
+FAILED = "not marked successful"  # --include-failed
+ROLLOUT = "driven by a policy"  # --include-rollouts
+
+
+def left_out_lines(left_out: Sequence[dict[str, str]], head: str = "left out ") -> list[str]:
+    """One line per reason: how many episodes, which, and the flag that builds them anyway."""
+    lines = []
+    for reason, flag in ((FAILED, "--include-failed"), (ROLLOUT, "--include-rollouts")):
+        ids = [x["episode"] for x in left_out if reason in x["reason"]]
+        if ids:
+            shown = ", ".join(ids[:5]) + (", ..." if len(ids) > 5 else "")
+            lines.append(f"{head}{len(ids)} episodes {reason} ({shown}): {flag} builds them")
+    return lines
+
+
 ACTION_LAYOUT = ["dp_x", "dp_y", "dp_z", "drot_x", "drot_y", "drot_z", "gripper"]
 EPISODE_DROPS = ("duplicate_state", "no_action", "stale_action", "action_without_state")
 VIEW_DROPS = ("missing_frame", "stale_frame", "bad_frame")
@@ -133,14 +149,7 @@ def format_summary(s: dict[str, Any], path: Path | None = None) -> str:
             f"  flagged       {len(s['flagged_episodes'])} episodes: "
             + "; ".join(f"{k}: {', '.join(v)}" for k, v in list(s["flagged_episodes"].items())[:5])
         )
-    if s.get("left_out_episodes"):
-        left = s["left_out_episodes"]
-        lines.append(
-            f"  left out      {len(left)} episodes not marked successful: "
-            + ", ".join(x["episode"] for x in left[:5])
-            + (", ..." if len(left) > 5 else "")
-            + " (--include-failed builds them)"
-        )
+    lines += left_out_lines(s.get("left_out_episodes", []), head="  left out      ")
     if s.get("skipped_episodes"):
         lines.append(
             f"  skipped       {len(s['skipped_episodes'])} episodes: "

@@ -24,7 +24,7 @@ _sym_db = _symbol_database.Default()
 
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x19services/pb/episode.proto\x12\x0cviewscale.v1\"\xc6\x06\n\x0b\x45pisodeMeta\x12\x12\n\nepisode_id\x18\x01 \x01(\t\x12\x0c\n\x04task\x18\x02 \x01(\t\x12\x0c\n\x04seed\x18\x03 \x01(\x04\x12\x0b\n\x03rig\x18\x04 \x01(\t\x12\x0f\n\x07success\x18\x05 \x01(\x08\x12\x12\n\ncontrol_hz\x18\x06 \x01(\x01\x12\x13\n\x0b\x61\x63hieved_hz\x18\x07 \x01(\x01\x12\r\n\x05ticks\x18\x08 \x01(\x04\x12\x35\n\x06\x66rames\x18\t \x03(\x0b\x32%.viewscale.v1.EpisodeMeta.FramesEntry\x12\x33\n\x05\x64rops\x18\n \x03(\x0b\x32$.viewscale.v1.EpisodeMeta.DropsEntry\x12;\n\tmalformed\x18\x0b \x03(\x0b\x32(.viewscale.v1.EpisodeMeta.MalformedEntry\x12\r\n\x05\x66lags\x18\x0c \x03(\t\x12\x10\n\x08start_ns\x18\r \x01(\x04\x12\x0e\n\x06\x65nd_ns\x18\x0e \x01(\x04\x12\x0c\n\x04path\x18\x0f \x01(\t\x12\x31\n\x04gaps\x18\x10 \x03(\x0b\x32#.viewscale.v1.EpisodeMeta.GapsEntry\x12\x13\n\x0bstale_ticks\x18\x11 \x01(\x04\x12\x15\n\rclipped_ticks\x18\x12 \x01(\x04\x12\x10\n\x08lockstep\x18\x13 \x01(\x08\x12\x17\n\x0frerendered_from\x18\x14 \x01(\t\x12J\n\x11malformed_reasons\x18\x15 \x03(\x0b\x32/.viewscale.v1.EpisodeMeta.MalformedReasonsEntry\x1a-\n\x0b\x46ramesEntry\x12\x0b\n\x03key\x18\x01 \x01(\t\x12\r\n\x05value\x18\x02 \x01(\x04:\x02\x38\x01\x1a,\n\nDropsEntry\x12\x0b\n\x03key\x18\x01 \x01(\t\x12\r\n\x05value\x18\x02 \x01(\x04:\x02\x38\x01\x1a\x30\n\x0eMalformedEntry\x12\x0b\n\x03key\x18\x01 \x01(\t\x12\r\n\x05value\x18\x02 \x01(\x04:\x02\x38\x01\x1a+\n\tGapsEntry\x12\x0b\n\x03key\x18\x01 \x01(\t\x12\r\n\x05value\x18\x02 \x01(\x04:\x02\x38\x01\x1a\x37\n\x15MalformedReasonsEntry\x12\x0b\n\x03key\x18\x01 \x01(\t\x12\r\n\x05value\x18\x02 \x01(\x04:\x02\x38\x01\"\xd7\x01\n\x0e\x45pisodeRequest\x12-\n\x07\x63ommand\x18\x01 \x01(\x0e\x32\x1c.viewscale.v1.EpisodeCommand\x12\x12\n\nepisode_id\x18\x02 \x01(\t\x12\x0c\n\x04task\x18\x03 \x01(\t\x12\x0c\n\x04seed\x18\x04 \x01(\x04\x12\x0b\n\x03rig\x18\x05 \x01(\t\x12\x12\n\ncontrol_hz\x18\x06 \x01(\x01\x12\x0f\n\x07success\x18\x07 \x01(\x08\x12\r\n\x05ticks\x18\x08 \x01(\x04\x12\x10\n\x08lockstep\x18\t \x01(\x08\x12\x13\n\x0binterrupted\x18\n \x01(\t\"e\n\x0c\x45pisodeReply\x12\n\n\x02ok\x18\x01 \x01(\x08\x12\r\n\x05\x65rror\x18\x02 \x01(\t\x12\x11\n\trecording\x18\x03 \x01(\x08\x12\'\n\x04meta\x18\x04 \x01(\x0b\x32\x19.viewscale.v1.EpisodeMeta\"\xc0\x01\n\x11SimControlRequest\x12)\n\x07\x63ommand\x18\x01 \x01(\x0e\x32\x18.viewscale.v1.SimCommand\x12\x0c\n\x04task\x18\x02 \x01(\t\x12\x0c\n\x04seed\x18\x03 \x01(\x04\x12\x12\n\nepisode_id\x18\x04 \x01(\t\x12\x16\n\tmax_ticks\x18\x05 \x01(\x04H\x00\x88\x01\x01\x12\x19\n\x0csettle_ticks\x18\x06 \x01(\rH\x01\x88\x01\x01\x42\x0c\n\n_max_ticksB\x0f\n\r_settle_ticks\"^\n\x0fSimControlReply\x12\n\n\x02ok\x18\x01 \x01(\x08\x12\r\n\x05\x65rror\x18\x02 \x01(\t\x12\r\n\x05ticks\x18\x03 \x01(\x04\x12\x0f\n\x07success\x18\x04 \x01(\x08\x12\x10\n\x08lockstep\x18\x05 \x01(\x08*\x9f\x01\n\x0e\x45pisodeCommand\x12\x1f\n\x1b\x45PISODE_COMMAND_UNSPECIFIED\x10\x00\x12\x19\n\x15\x45PISODE_COMMAND_START\x10\x01\x12\x18\n\x14\x45PISODE_COMMAND_STOP\x10\x02\x12\x1b\n\x17\x45PISODE_COMMAND_DISCARD\x10\x03\x12\x1a\n\x16\x45PISODE_COMMAND_STATUS\x10\x04*l\n\nSimCommand\x12\x1b\n\x17SIM_COMMAND_UNSPECIFIED\x10\x00\x12\x15\n\x11SIM_COMMAND_RESET\x10\x01\x12\x13\n\x0fSIM_COMMAND_RUN\x10\x02\x12\x15\n\x11SIM_COMMAND_PAUSE\x10\x03\x62\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x19services/pb/episode.proto\x12\x0cviewscale.v1\"\xdf\x06\n\x0b\x45pisodeMeta\x12\x12\n\nepisode_id\x18\x01 \x01(\t\x12\x0c\n\x04task\x18\x02 \x01(\t\x12\x0c\n\x04seed\x18\x03 \x01(\x04\x12\x0b\n\x03rig\x18\x04 \x01(\t\x12\x0f\n\x07success\x18\x05 \x01(\x08\x12\x12\n\ncontrol_hz\x18\x06 \x01(\x01\x12\x13\n\x0b\x61\x63hieved_hz\x18\x07 \x01(\x01\x12\r\n\x05ticks\x18\x08 \x01(\x04\x12\x35\n\x06\x66rames\x18\t \x03(\x0b\x32%.viewscale.v1.EpisodeMeta.FramesEntry\x12\x33\n\x05\x64rops\x18\n \x03(\x0b\x32$.viewscale.v1.EpisodeMeta.DropsEntry\x12;\n\tmalformed\x18\x0b \x03(\x0b\x32(.viewscale.v1.EpisodeMeta.MalformedEntry\x12\r\n\x05\x66lags\x18\x0c \x03(\t\x12\x10\n\x08start_ns\x18\r \x01(\x04\x12\x0e\n\x06\x65nd_ns\x18\x0e \x01(\x04\x12\x0c\n\x04path\x18\x0f \x01(\t\x12\x31\n\x04gaps\x18\x10 \x03(\x0b\x32#.viewscale.v1.EpisodeMeta.GapsEntry\x12\x13\n\x0bstale_ticks\x18\x11 \x01(\x04\x12\x15\n\rclipped_ticks\x18\x12 \x01(\x04\x12\x10\n\x08lockstep\x18\x13 \x01(\x08\x12\x17\n\x0frerendered_from\x18\x14 \x01(\t\x12J\n\x11malformed_reasons\x18\x15 \x03(\x0b\x32/.viewscale.v1.EpisodeMeta.MalformedReasonsEntry\x12\x17\n\x0f\x63ommand_sources\x18\x16 \x03(\t\x1a-\n\x0b\x46ramesEntry\x12\x0b\n\x03key\x18\x01 \x01(\t\x12\r\n\x05value\x18\x02 \x01(\x04:\x02\x38\x01\x1a,\n\nDropsEntry\x12\x0b\n\x03key\x18\x01 \x01(\t\x12\r\n\x05value\x18\x02 \x01(\x04:\x02\x38\x01\x1a\x30\n\x0eMalformedEntry\x12\x0b\n\x03key\x18\x01 \x01(\t\x12\r\n\x05value\x18\x02 \x01(\x04:\x02\x38\x01\x1a+\n\tGapsEntry\x12\x0b\n\x03key\x18\x01 \x01(\t\x12\r\n\x05value\x18\x02 \x01(\x04:\x02\x38\x01\x1a\x37\n\x15MalformedReasonsEntry\x12\x0b\n\x03key\x18\x01 \x01(\t\x12\r\n\x05value\x18\x02 \x01(\x04:\x02\x38\x01\"\xd7\x01\n\x0e\x45pisodeRequest\x12-\n\x07\x63ommand\x18\x01 \x01(\x0e\x32\x1c.viewscale.v1.EpisodeCommand\x12\x12\n\nepisode_id\x18\x02 \x01(\t\x12\x0c\n\x04task\x18\x03 \x01(\t\x12\x0c\n\x04seed\x18\x04 \x01(\x04\x12\x0b\n\x03rig\x18\x05 \x01(\t\x12\x12\n\ncontrol_hz\x18\x06 \x01(\x01\x12\x0f\n\x07success\x18\x07 \x01(\x08\x12\r\n\x05ticks\x18\x08 \x01(\x04\x12\x10\n\x08lockstep\x18\t \x01(\x08\x12\x13\n\x0binterrupted\x18\n \x01(\t\"e\n\x0c\x45pisodeReply\x12\n\n\x02ok\x18\x01 \x01(\x08\x12\r\n\x05\x65rror\x18\x02 \x01(\t\x12\x11\n\trecording\x18\x03 \x01(\x08\x12\'\n\x04meta\x18\x04 \x01(\x0b\x32\x19.viewscale.v1.EpisodeMeta\"\xc0\x01\n\x11SimControlRequest\x12)\n\x07\x63ommand\x18\x01 \x01(\x0e\x32\x18.viewscale.v1.SimCommand\x12\x0c\n\x04task\x18\x02 \x01(\t\x12\x0c\n\x04seed\x18\x03 \x01(\x04\x12\x12\n\nepisode_id\x18\x04 \x01(\t\x12\x16\n\tmax_ticks\x18\x05 \x01(\x04H\x00\x88\x01\x01\x12\x19\n\x0csettle_ticks\x18\x06 \x01(\rH\x01\x88\x01\x01\x42\x0c\n\n_max_ticksB\x0f\n\r_settle_ticks\"^\n\x0fSimControlReply\x12\n\n\x02ok\x18\x01 \x01(\x08\x12\r\n\x05\x65rror\x18\x02 \x01(\t\x12\r\n\x05ticks\x18\x03 \x01(\x04\x12\x0f\n\x07success\x18\x04 \x01(\x08\x12\x10\n\x08lockstep\x18\x05 \x01(\x08*\x9f\x01\n\x0e\x45pisodeCommand\x12\x1f\n\x1b\x45PISODE_COMMAND_UNSPECIFIED\x10\x00\x12\x19\n\x15\x45PISODE_COMMAND_START\x10\x01\x12\x18\n\x14\x45PISODE_COMMAND_STOP\x10\x02\x12\x1b\n\x17\x45PISODE_COMMAND_DISCARD\x10\x03\x12\x1a\n\x16\x45PISODE_COMMAND_STATUS\x10\x04*l\n\nSimCommand\x12\x1b\n\x17SIM_COMMAND_UNSPECIFIED\x10\x00\x12\x15\n\x11SIM_COMMAND_RESET\x10\x01\x12\x13\n\x0fSIM_COMMAND_RUN\x10\x02\x12\x15\n\x11SIM_COMMAND_PAUSE\x10\x03\x62\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
@@ -41,28 +41,28 @@ if not _descriptor._USE_C_DESCRIPTORS:
   _globals['_EPISODEMETA_GAPSENTRY']._serialized_options = b'8\001'
   _globals['_EPISODEMETA_MALFORMEDREASONSENTRY']._loaded_options = None
   _globals['_EPISODEMETA_MALFORMEDREASONSENTRY']._serialized_options = b'8\001'
-  _globals['_EPISODECOMMAND']._serialized_start=1497
-  _globals['_EPISODECOMMAND']._serialized_end=1656
-  _globals['_SIMCOMMAND']._serialized_start=1658
-  _globals['_SIMCOMMAND']._serialized_end=1766
+  _globals['_EPISODECOMMAND']._serialized_start=1522
+  _globals['_EPISODECOMMAND']._serialized_end=1681
+  _globals['_SIMCOMMAND']._serialized_start=1683
+  _globals['_SIMCOMMAND']._serialized_end=1791
   _globals['_EPISODEMETA']._serialized_start=44
-  _globals['_EPISODEMETA']._serialized_end=882
-  _globals['_EPISODEMETA_FRAMESENTRY']._serialized_start=639
-  _globals['_EPISODEMETA_FRAMESENTRY']._serialized_end=684
-  _globals['_EPISODEMETA_DROPSENTRY']._serialized_start=686
-  _globals['_EPISODEMETA_DROPSENTRY']._serialized_end=730
-  _globals['_EPISODEMETA_MALFORMEDENTRY']._serialized_start=732
-  _globals['_EPISODEMETA_MALFORMEDENTRY']._serialized_end=780
-  _globals['_EPISODEMETA_GAPSENTRY']._serialized_start=782
-  _globals['_EPISODEMETA_GAPSENTRY']._serialized_end=825
-  _globals['_EPISODEMETA_MALFORMEDREASONSENTRY']._serialized_start=827
-  _globals['_EPISODEMETA_MALFORMEDREASONSENTRY']._serialized_end=882
-  _globals['_EPISODEREQUEST']._serialized_start=885
-  _globals['_EPISODEREQUEST']._serialized_end=1100
-  _globals['_EPISODEREPLY']._serialized_start=1102
-  _globals['_EPISODEREPLY']._serialized_end=1203
-  _globals['_SIMCONTROLREQUEST']._serialized_start=1206
-  _globals['_SIMCONTROLREQUEST']._serialized_end=1398
-  _globals['_SIMCONTROLREPLY']._serialized_start=1400
-  _globals['_SIMCONTROLREPLY']._serialized_end=1494
+  _globals['_EPISODEMETA']._serialized_end=907
+  _globals['_EPISODEMETA_FRAMESENTRY']._serialized_start=664
+  _globals['_EPISODEMETA_FRAMESENTRY']._serialized_end=709
+  _globals['_EPISODEMETA_DROPSENTRY']._serialized_start=711
+  _globals['_EPISODEMETA_DROPSENTRY']._serialized_end=755
+  _globals['_EPISODEMETA_MALFORMEDENTRY']._serialized_start=757
+  _globals['_EPISODEMETA_MALFORMEDENTRY']._serialized_end=805
+  _globals['_EPISODEMETA_GAPSENTRY']._serialized_start=807
+  _globals['_EPISODEMETA_GAPSENTRY']._serialized_end=850
+  _globals['_EPISODEMETA_MALFORMEDREASONSENTRY']._serialized_start=852
+  _globals['_EPISODEMETA_MALFORMEDREASONSENTRY']._serialized_end=907
+  _globals['_EPISODEREQUEST']._serialized_start=910
+  _globals['_EPISODEREQUEST']._serialized_end=1125
+  _globals['_EPISODEREPLY']._serialized_start=1127
+  _globals['_EPISODEREPLY']._serialized_end=1228
+  _globals['_SIMCONTROLREQUEST']._serialized_start=1231
+  _globals['_SIMCONTROLREQUEST']._serialized_end=1423
+  _globals['_SIMCONTROLREPLY']._serialized_start=1425
+  _globals['_SIMCONTROLREPLY']._serialized_end=1519
 # @@protoc_insertion_point(module_scope)

@@ -32,7 +32,7 @@ SIM_COMMAND_RUN: SimCommand
 SIM_COMMAND_PAUSE: SimCommand
 
 class EpisodeMeta(_message.Message):
-    __slots__ = ("episode_id", "task", "seed", "rig", "success", "control_hz", "achieved_hz", "ticks", "frames", "drops", "malformed", "flags", "start_ns", "end_ns", "path", "gaps", "stale_ticks", "clipped_ticks", "lockstep", "rerendered_from", "malformed_reasons")
+    __slots__ = ("episode_id", "task", "seed", "rig", "success", "control_hz", "achieved_hz", "ticks", "frames", "drops", "malformed", "flags", "start_ns", "end_ns", "path", "gaps", "stale_ticks", "clipped_ticks", "lockstep", "rerendered_from", "malformed_reasons", "command_sources")
     class FramesEntry(_message.Message):
         __slots__ = ("key", "value")
         KEY_FIELD_NUMBER: _ClassVar[int]
@@ -89,6 +89,7 @@ class EpisodeMeta(_message.Message):
     LOCKSTEP_FIELD_NUMBER: _ClassVar[int]
     RERENDERED_FROM_FIELD_NUMBER: _ClassVar[int]
     MALFORMED_REASONS_FIELD_NUMBER: _ClassVar[int]
+    COMMAND_SOURCES_FIELD_NUMBER: _ClassVar[int]
     episode_id: str
     task: str
     seed: int
@@ -110,7 +111,8 @@ class EpisodeMeta(_message.Message):
     lockstep: bool
     rerendered_from: str
     malformed_reasons: _containers.ScalarMap[str, int]
-    def __init__(self, episode_id: _Optional[str] = ..., task: _Optional[str] = ..., seed: _Optional[int] = ..., rig: _Optional[str] = ..., success: _Optional[bool] = ..., control_hz: _Optional[float] = ..., achieved_hz: _Optional[float] = ..., ticks: _Optional[int] = ..., frames: _Optional[_Mapping[str, int]] = ..., drops: _Optional[_Mapping[str, int]] = ..., malformed: _Optional[_Mapping[str, int]] = ..., flags: _Optional[_Iterable[str]] = ..., start_ns: _Optional[int] = ..., end_ns: _Optional[int] = ..., path: _Optional[str] = ..., gaps: _Optional[_Mapping[str, int]] = ..., stale_ticks: _Optional[int] = ..., clipped_ticks: _Optional[int] = ..., lockstep: _Optional[bool] = ..., rerendered_from: _Optional[str] = ..., malformed_reasons: _Optional[_Mapping[str, int]] = ...) -> None: ...
+    command_sources: _containers.RepeatedScalarFieldContainer[str]
+    def __init__(self, episode_id: _Optional[str] = ..., task: _Optional[str] = ..., seed: _Optional[int] = ..., rig: _Optional[str] = ..., success: _Optional[bool] = ..., control_hz: _Optional[float] = ..., achieved_hz: _Optional[float] = ..., ticks: _Optional[int] = ..., frames: _Optional[_Mapping[str, int]] = ..., drops: _Optional[_Mapping[str, int]] = ..., malformed: _Optional[_Mapping[str, int]] = ..., flags: _Optional[_Iterable[str]] = ..., start_ns: _Optional[int] = ..., end_ns: _Optional[int] = ..., path: _Optional[str] = ..., gaps: _Optional[_Mapping[str, int]] = ..., stale_ticks: _Optional[int] = ..., clipped_ticks: _Optional[int] = ..., lockstep: _Optional[bool] = ..., rerendered_from: _Optional[str] = ..., malformed_reasons: _Optional[_Mapping[str, int]] = ..., command_sources: _Optional[_Iterable[str]] = ...) -> None: ...
 
 class EpisodeRequest(_message.Message):
     __slots__ = ("command", "episode_id", "task", "seed", "rig", "control_hz", "success", "ticks", "lockstep", "interrupted")

@@ -20,7 +20,7 @@ from __future__ import annotations
 from collections import Counter
 from dataclasses import dataclass, field
 
-from services.core.topics import APPLIED_ACTION, ROBOT_STATE
+from services.core.topics import APPLIED_ACTION, COMMAND, ROBOT_STATE
 from services.core.validation import counts_by_reason
 from services.pb.common_pb2 import Header
 from services.pb.episode_pb2 import EpisodeMeta, EpisodeRequest
@@ -59,6 +59,7 @@ class EpisodeCounts:
     state_last: int = 0
     events: list[str] = field(default_factory=list)  # flags from liveliness and errors, in order
     left: set[str] = field(default_factory=set)  # services that lost liveliness during the episode
+    sources: set[str] = field(default_factory=set)  # EefCommand.source of the commands written
 
     @classmethod
     def start(cls, req: EpisodeRequest, path: str, start_ns: int) -> EpisodeCounts:
@@ -117,6 +118,8 @@ class EpisodeCounts:
                 else:
                     self.missing[key] += header.seq - last - 1
             self.last_seq[key] = header.seq
+        if key == COMMAND.key and msg.source:
+            self.sources.add(msg.source)
         if key == APPLIED_ACTION.key:
             self.stale += bool(msg.stale)
             self.clipped += bool(len(msg.limits))
@@ -156,6 +159,7 @@ def episode_meta(
     meta.gaps.update({k: v for k, v in ep.gaps.items() if v})
     meta.stale_ticks = ep.stale
     meta.clipped_ticks = ep.clipped
+    meta.command_sources.extend(sorted(ep.sources))
     meta.end_ns = end_ns
 
     flags = list(ep.events)

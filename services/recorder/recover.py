@@ -15,6 +15,7 @@ and flagged ``recovered``. The source file is left in place.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import io
 import logging
 import os
@@ -24,6 +25,7 @@ from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from google.protobuf.message import DecodeError
 from mcap.data_stream import ReadDataStream
 from mcap.opcode import Opcode
 from mcap.records import Attachment, Channel, Chunk, Message, Metadata, Schema
@@ -31,7 +33,8 @@ from mcap.stream_reader import MAGIC_SIZE, breakup_chunk, read_magic
 from mcap.writer import CompressionType
 from mcap.writer import Writer as McapWriter
 
-from services.core.topics import ROBOT_STATE
+from services.core.topics import COMMAND, ROBOT_STATE
+from services.pb.control_pb2 import EefCommand
 from services.pb.episode_pb2 import EpisodeMeta
 from services.recorder.writer import (
     EPISODE_CHANNEL,
@@ -62,6 +65,7 @@ class Recovered:
     complete: bool = False  # the source had its footer: nothing was missing
     lost_bytes: int = 0  # unreadable bytes at the end of the source
     stop_reason: str = ""  # why reading stopped before the end, if it did
+    command_sources: set[str] = field(default_factory=set)  # EefCommand.source of the commands saved
 
     def summary(self) -> str:
         tail = (
@@ -151,6 +155,10 @@ def salvage(src: str | Path, out: str | Path | None = None, overwrite: bool = Fa
                 last_log = max(last_log, rec.log_time)
                 if topic == ROBOT_STATE.mcap_topic:
                     robot_stamps.append(rec.publish_time)
+                elif topic == COMMAND.mcap_topic:
+                    with contextlib.suppress(DecodeError):  # (a torn command: the recorder had checked it)
+                        if source := EefCommand.FromString(rec.data).source:
+                            result.command_sources.add(source)
 
             def add(rec) -> None:
                 if isinstance(rec, Schema):
@@ -225,6 +233,7 @@ def _rebuild_meta(
             meta.frames[parts[2]] = n
     meta.end_ns = last_log
     meta.path = str(result.path)
+    meta.command_sources.extend(sorted(result.command_sources))
     meta.flags.append(
         f"{RECOVERED_FLAG}: {src.name} was not closed by the recorder (killed?); "
         f"{result.messages} messages saved"

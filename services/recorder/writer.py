@@ -82,6 +82,8 @@ def meta_to_record(meta: EpisodeMeta) -> dict[str, str]:
         record[name] = json.dumps(dict(sorted(getattr(meta, name).items())))
     if meta.rerendered_from:  # only re-rendered episodes carry it
         record["rerendered_from"] = meta.rerendered_from
+    if meta.command_sources:  # (recordings before 2026-12-05 have none)
+        record["command_sources"] = json.dumps(list(meta.command_sources))
     return record
 
 
@@ -97,7 +99,7 @@ def record_to_dict(record: Mapping[str, str]) -> dict:
     for key in ("success", "lockstep"):
         if key in out:
             out[key] = out[key] == "true"
-    for key in (*_MAP_FIELDS, "flags"):
+    for key in (*_MAP_FIELDS, "flags", "command_sources"):
         if key in out:
             out[key] = json.loads(out[key])
     return out

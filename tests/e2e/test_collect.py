@@ -47,6 +47,7 @@ def test_every_camera_has_one_frame_per_tick_with_monotonic_times(recorded):
         ticks = ep.metadata["ticks"]
         assert ep.metadata["success"] is True and ep.metadata["rig"] == "five15"
         assert ep.metadata["lockstep"] is True and ep.flags == []  # --fast: lockstep, never rate-flagged
+        assert ep.metadata["command_sources"] == ["scripted"]  # the expert drove it
         assert ticks > 10
         states = ep.messages("/robot/state")
         applied = ep.messages("/robot/applied")

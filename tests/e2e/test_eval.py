@@ -56,6 +56,7 @@ def test_eval_drives_the_sim_through_the_policy_server_and_records_every_rollout
         assert ep.metadata["lockstep"] is True and "-eval-s" in ep.metadata["episode_id"]
         commands = ep.messages("/teleop/command")
         assert commands and {c.msg.source for c in commands} == {"policy"}
+        assert ep.metadata["command_sources"] == ["policy"]  # (a build leaves rollouts out by it)
         assert len(ep.messages("/robot/applied")) == r["ticks"]
         assert not any(a.msg.stale for a in ep.messages("/robot/applied"))  # the policy answered every tick
     assert (out / "report.md").read_text().startswith("# Evaluation: lift")
@@ -166,6 +167,7 @@ def test_rerendered_episodes_read_and_build_like_collected_ones(sim_dataset, tmp
         assert src.cameras == ["F", "FL", "FR"] and new.cameras == ["F", "FL30", "FR30"]
         assert new.metadata["rig"] == "three30"
         assert new.metadata["ticks"] == src.metadata["ticks"] and new.metadata["success"] == src.metadata["success"]
+        assert new.metadata["command_sources"] == src.metadata["command_sources"] == ["scripted"]
         s_states, n_states = src.messages("/robot/state"), new.messages("/robot/state")
         assert [r.publish_time for r in n_states] == [r.publish_time for r in s_states]
         assert np.abs(np.array([r.msg.eef_pos for r in n_states]) - [r.msg.eef_pos for r in s_states]).max() < 1e-6

@@ -82,6 +82,7 @@ def write_episode(
     calib_size: tuple[int, int] | None = None,
     scale: float = 1.0,
     state_fields: dict[int, dict] | None = None,
+    command_sources: list[str] = (),
 ) -> Path:
     """Write ``<out_dir>/<episode_id>.mcap``; returns its path."""
     rg = load_rig(rig)
@@ -141,6 +142,7 @@ def write_episode(
         seed=seed,
         rig=rig,
         success=success,
+        command_sources=command_sources,
         control_hz=control_hz,
         achieved_hz=control_hz,
         ticks=n,

@@ -545,13 +545,16 @@ def test_a_second_build_into_a_folder_being_built_is_refused(tmp_path, capsys):
     assert rc == 0 and not (out / LOCK_FILE).exists() and (out / "manifest.json").is_file()
 
 
-def test_episodes_not_marked_successful_are_left_out_unless_asked_for(tmp_path, capsys):
-    """(a demonstration stopped as a failure, and a policy's failed rollout in a folder under --raw,
-    were built and trained on as demonstrations, without a word)"""
+def test_failed_episodes_and_policy_rollouts_are_left_out_unless_asked_for(tmp_path, capsys):
+    """(a demonstration stopped as a failure, and a policy's rollouts in a folder under --raw --
+    failed or successful -- were built and trained on as demonstrations, without a word)"""
     raw = tmp_path / "raw"
-    write_episode(raw, "good-0", 24, cameras=["F"], seed=0)
-    write_episode(raw, "good-1", 24, cameras=["F"], seed=1)
-    write_episode(raw / "eval" / "rollouts", "failed-rollout", 24, cameras=["F"], seed=2, success=False)
+    write_episode(raw, "good-0", 24, cameras=["F"], seed=0, command_sources=["spacemouse"])
+    write_episode(raw, "good-1", 24, cameras=["F"], seed=1)  # (recorded before command_sources)
+    write_episode(raw, "stopped-failed", 24, cameras=["F"], seed=2, success=False, command_sources=["spacemouse"])
+    rollouts = raw / "eval" / "rollouts"
+    write_episode(rollouts, "rollout-ok", 24, cameras=["F"], seed=3, command_sources=["policy"])
+    write_episode(rollouts, "rollout-failed", 24, cameras=["F"], seed=4, success=False, command_sources=["policy"])
     out = tmp_path / "ds"
 
     def build(*extra: str) -> tuple[int, str, str]:
@@ -559,28 +562,37 @@ def test_episodes_not_marked_successful_are_left_out_unless_asked_for(tmp_path, 
         got = capsys.readouterr()
         return rc, got.out, got.err
 
+    def built() -> list[str]:
+        return sorted(e["id"] for e in DatasetStore(out).meta["episodes"])
+
     rc, text, err = build()
     assert rc == 0, err
-    assert "left out 1 episodes not marked successful (failed-rollout): --include-failed builds them too" in err
-    assert "left out      1 episodes not marked successful: failed-rollout (--include-failed builds them)" in text
-    store = DatasetStore(out)
-    assert [e["id"] for e in store.meta["episodes"]] == ["good-0", "good-1"]
-    assert store.summary["left_out_episodes"] == [
-        {
-            "file": str(raw / "eval" / "rollouts" / "failed-rollout.mcap"),
-            "episode": "failed-rollout",
-            "reason": "not marked successful",
-        }
-    ]
+    failed = "2 episodes not marked successful (rollout-failed, stopped-failed): --include-failed builds them"
+    rollout = "2 episodes driven by a policy (rollout-failed, rollout-ok): --include-rollouts builds them"
+    assert f"left out {failed}" in err and f"left out {rollout}" in err
+    assert f"  left out      {failed}" in text and f"  left out      {rollout}" in text
+    assert built() == ["good-0", "good-1"]
+    assert {x["episode"]: x["reason"] for x in DatasetStore(out).summary["left_out_episodes"]} == {
+        "stopped-failed": "not marked successful",
+        "rollout-ok": "driven by a policy",
+        "rollout-failed": "not marked successful, driven by a policy",
+    }
     rc, text, err = build()  # nothing changed: up to date, and still says what it leaves out
-    assert rc == 0 and "up to date" in text and "failed-rollout" in text
+    assert rc == 0 and "up to date" in text and "rollout-ok" in text
     rc, text, err = build("--include-failed")
+    assert rc == 0 and built() == ["good-0", "good-1", "stopped-failed"], err
+    rc, text, err = build("--include-rollouts")
+    assert rc == 0 and built() == ["good-0", "good-1", "rollout-ok"], err
+    rc, text, err = build("--include-failed", "--include-rollouts")
     assert rc == 0 and "left out" not in text + err
-    store = DatasetStore(out)
-    assert sorted(e["id"] for e in store.meta["episodes"]) == ["failed-rollout", "good-0", "good-1"]
-    assert store.summary["successful_episodes"] == 2 and store.summary["left_out_episodes"] == []
-    # nothing successful at all: one line, and no dataset
-    rc = viewscale(["dataset", "build", "--raw", str(raw / "eval"), "--out", str(tmp_path / "none"), "--views", "F"])
+    assert built() == ["good-0", "good-1", "rollout-failed", "rollout-ok", "stopped-failed"]
+    assert DatasetStore(out).summary["successful_episodes"] == 3
+    from services.dataset.build import POLICY_SOURCE
+    from services.teleop.config import PolicyTeleopConfig
+
+    assert PolicyTeleopConfig.model_fields["type"].default == POLICY_SOURCE  # what a rollout's commands say
+    # nothing to learn from at all: one line, and no dataset
+    rc = viewscale(["dataset", "build", "--raw", str(rollouts), "--out", str(tmp_path / "none"), "--views", "F"])
     err = capsys.readouterr().err
-    assert rc == 2 and "error: none of the 1 episodes is marked successful" in err and "--include-failed" in err
+    assert rc == 2 and "error: none of the 2 episodes is a demonstration to learn from" in err, err
     assert not (tmp_path / "none").exists()

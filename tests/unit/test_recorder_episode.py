@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from services.pb.common_pb2 import Header
-from services.pb.control_pb2 import AppliedAction
+from services.pb.control_pb2 import AppliedAction, EefCommand
 from services.pb.episode_pb2 import EpisodeRequest
 from services.pb.sensors_pb2 import RobotState
 from services.recorder.episode import EpisodeCounts, episode_meta
@@ -118,3 +118,12 @@ def test_events_come_first_in_order_and_once():
     ]
     ep.malformed["camera/F/image"] += 3
     assert "malformed payloads (camera/F/image 3)" in meta(ep).flags
+
+
+def test_the_drivers_whose_commands_it_holds_are_named_once_each():
+    ep = opened()
+    feed(ep, range(3))
+    assert list(meta(ep).command_sources) == []
+    for k, source in enumerate(["spacemouse", "policy", "policy", ""]):
+        ep.count("teleop/command", EefCommand(tick=k, source=source), T0 + k * PERIOD)
+    assert list(meta(ep).command_sources) == ["policy", "spacemouse"]

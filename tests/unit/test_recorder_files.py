@@ -13,9 +13,10 @@ from mcap_protobuf.decoder import DecoderFactory
 from services.core.config import ConfigError, load_config
 from services.core.rig import Camera, look_at
 from services.core.tensors import compressed_image, decode_jpeg, encode_jpeg
-from services.core.topics import ROBOT_STATE, camera_calibration, camera_image, camera_pose
+from services.core.topics import COMMAND, ROBOT_STATE, camera_calibration, camera_image, camera_pose
 from services.core.validation import Invalid as MalformedPayload
 from services.core.validation import parse
+from services.pb.control_pb2 import EefCommand
 from services.pb.episode_pb2 import EpisodeMeta
 from services.pb.sensors_pb2 import RobotState
 from services.recorder.config import RecorderConfig
@@ -134,6 +135,7 @@ def write_episode(path, n=30, chunk_size=1 << 20, close=True) -> tuple[EpisodeWr
         stamp = T0 + i * 20_000_000
         w.write_message(ROBOT_STATE.mcap_topic, state(i, stamp), stamp + 1000, stamp)
         w.write_message(camera_image("F").mcap_topic, compressed_image(IMG, stamp, "F"), stamp + 2000, stamp)
+        w.write_message(COMMAND.mcap_topic, EefCommand(tick=i, source="policy"), stamp + 3000, stamp)
     if close:
         meta.ticks = n
         meta.frames["F"] = n
@@ -161,6 +163,7 @@ def test_file_layout_reads_back_with_the_mcap_library(tmp_path):
             "/camera/F/pose": ("foxglove.FrameTransform", "protobuf"),
             "/robot/state": ("viewscale.v1.RobotState", "protobuf"),
             "/camera/F/image": ("foxglove.CompressedImage", "protobuf"),
+            "/teleop/command": ("viewscale.v1.EefCommand", "protobuf"),
             "/recorder/episode": ("viewscale.v1.EpisodeMeta", "protobuf"),
         }
         assert {c.message_encoding for c in summary.channels.values()} == {"protobuf"}
@@ -242,11 +245,14 @@ def test_metadata_record_round_trips():
         end_ns=2,
     )
     meta.drops["camera/F/image"] = 4
+    assert "command_sources" not in meta_to_record(meta)  # (none: as recordings made before it)
+    meta.command_sources.extend(["policy", "spacemouse"])
     rec = meta_to_record(meta)
     assert all(isinstance(v, str) for v in rec.values())
     back = record_to_dict(rec)
     assert back["seed"] == 2**63 and back["drops"] == {"camera/F/image": 4} and back["flags"] == ["a", "b: c"]
     assert back["success"] is False and back["achieved_hz"] == 9.5
+    assert back["command_sources"] == ["policy", "spacemouse"]
 
 
 # -- crash bound and recovery -----------------------------------------------------------------
@@ -264,6 +270,7 @@ def test_an_open_file_loses_only_its_open_chunk(tmp_path):
     ep = read_episode(result.path)
     assert any(f.startswith(RECOVERED_FLAG) for f in ep.flags)
     assert (ep.metadata["task"], ep.metadata["seed"], ep.metadata["rig"]) == ("lift", 7, "five15")
+    assert ep.metadata["command_sources"] == ["policy"]  # from the commands saved: a rollout stays one
     states = ep.messages("/robot/state")
     assert ep.metadata["ticks"] == len(states) and ep.metadata["frames"] == {"F": len(ep.messages("camera/F/image"))}
     assert [r.sequence for r in states] == list(range(len(states)))  # a prefix: nothing skipped
