@@ -82,6 +82,15 @@ def _error(exc: Exception, code: int = 2) -> int:
     return code
 
 
+def _bad_listen(address: str) -> str | None:
+    """A listen address no run could bind (a bad argument: exit 2); a port another process holds
+    is found when the server binds (exit 1: the same command works once it is free)."""
+    from services.policy.transport import unlistenable
+
+    why = unlistenable(address)
+    return f"cannot listen on {address}: {why}" if why else None
+
+
 def _serve(args: argparse.Namespace) -> int:
     from services.policy.config import ServerConfig
 
@@ -96,6 +105,8 @@ def _serve(args: argparse.Namespace) -> int:
     cfg = _load(ServerConfig, args, flags, "policy")
     if cfg is None:
         return 2
+    if why := _bad_listen(cfg.listen):  # (found before the workers start, not after)
+        return _error(why)
     if cfg.in_process and (cfg.workers or cfg.worker):  # (a config file's workers, --in-process to debug)
         unused = [f"{cfg.workers} local workers"] if cfg.workers else []
         unused += [f"worker {a}" for a in cfg.worker]
@@ -143,6 +154,8 @@ def _worker(args: argparse.Namespace) -> int:
     cfg = _load(WorkerConfig, args, ["checkpoint", "listen", "device", "threads", "precision"], "worker")
     if cfg is None:
         return 2
+    if why := _bad_listen(cfg.listen):
+        return _error(why)
     from services.policy.checkpoint import CheckpointError, inference_device, read_info
     from services.policy.transport import ListenError
     from services.policy.worker import serve_worker

@@ -41,26 +41,46 @@ def bad_port(target: str) -> str | None:
 
 def listen_on(server, address: str, credentials=None) -> int:
     """Bind a grpc (or grpc.aio) server made with EXCLUSIVE_PORT to ``address``; its port (port 0:
-    any free one). ListenError naming the address and the reason when it cannot."""
+    any free one). ListenError naming the address and the reason when it cannot: found with a plain
+    socket first, so that grpc's own error line ("add_port.cc ... Failed to add port") is not
+    printed before ours for the usual reasons (a port taken, a host that does not resolve)."""
+    if why := _bind_problem(address):
+        raise ListenError(f"cannot listen on {address}: {why}")
     try:
         return server.add_secure_port(address, credentials) if credentials else server.add_insecure_port(address)
     except RuntimeError:  # grpc says only "Failed to bind to address ..."
-        raise ListenError(f"cannot listen on {address}: {_why_not_bound(address)}") from None
+        why = _bind_problem(address) or "grpc could not bind it (GRPC_VERBOSITY=debug says why)"
+        raise ListenError(f"cannot listen on {address}: {why}") from None
 
 
-def _why_not_bound(address: str) -> str:
-    """The reason a bind to host:port fails, found by trying it with a plain socket."""
-    import errno
+def _resolve(address: str) -> tuple[str, list, str | None]:
+    """(host, getaddrinfo's answers for host:port, why not: None when it resolves)."""
     import socket
 
     host, _, port = address.rpartition(":")
     host = host.strip("[]")
     try:
-        infos = socket.getaddrinfo(host or None, int(port), type=socket.SOCK_STREAM)
+        return host, socket.getaddrinfo(host or None, int(port), type=socket.SOCK_STREAM), None
     except ValueError:
-        return "not host:port (e.g. 127.0.0.1:50051, or 0.0.0.0:7001 for every interface)"
+        return host, [], "not host:port (e.g. 127.0.0.1:50051, or 0.0.0.0:7001 for every interface)"
     except socket.gaierror:
-        return f"{host!r} is not a name or address this machine resolves"
+        return host, [], f"{host!r} is not a name or address this machine resolves"
+
+
+def unlistenable(address: str) -> str | None:
+    """Why host:port can never be listened on here, whatever else runs, or None: not host:port, or
+    a host this machine does not resolve. (A bad --listen, checked before anything starts.)"""
+    return _resolve(address)[2]
+
+
+def _bind_problem(address: str) -> str | None:
+    """Why a bind to host:port fails, found by trying it with a plain socket; None if it binds."""
+    import errno
+    import socket
+
+    host, infos, why = _resolve(address)
+    if why:
+        return why
     for family, kind, proto, _, sockaddr in infos:
         with socket.socket(family, kind, proto) as sock:
             sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
@@ -72,7 +92,7 @@ def _why_not_bound(address: str) -> str:
                 if exc.errno == errno.EADDRNOTAVAIL:
                     return f"{host} is not an address of this machine (0.0.0.0 listens on every interface)"
                 return exc.strerror or str(exc)
-    return "grpc could not bind it (GRPC_VERBOSITY=debug says why)"
+    return None
 
 
 def message_size_options(max_mb: int) -> list[tuple[str, int]]:
