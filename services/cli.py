@@ -164,7 +164,7 @@ def _check_size(size: int | None) -> None:
 def _rerender(args: argparse.Namespace) -> int:
     os.environ.setdefault("MUJOCO_GL", "egl")
     from services.core.config import ConfigError
-    from services.core.runtime import OutputError, output_dir
+    from services.core.runtime import RECORDINGS, OutputError, output_dir, refuse_other_output
     from services.dataset.build import find_episodes
     from services.dataset.store import DatasetError
     from sim.rerender import rerender
@@ -176,6 +176,7 @@ def _rerender(args: argparse.Namespace) -> int:
             # its episodes would be read back as recordings: the next run re-renders the re-renders
             raise ConfigError(f"--out {out} is a --raw folder: write the re-rendered episodes to another one")
         episodes = find_episodes([Path(p) for p in args.raw])  # a wrong --raw: no empty --out left behind
+        refuse_other_output(out, "--out", RECORDINGS)
         with output_dir(out, "--out", keep_empty=False):  # taken back if nothing was written in it
             result = rerender(
                 episodes,  # (the files found: the folders are not walked again)

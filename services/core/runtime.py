@@ -132,6 +132,38 @@ def writable_dir(path: str | os.PathLike, argument: str) -> Path:
     return p
 
 
+# What marks a folder as one command's output: its kind, and names any one of which it holds. The
+# names are the writers' own (services.dataset.store, services.trainer.train, services.policy.
+# checkpoint, services.session.evaluate; tests/unit/test_runtime.py holds them to those).
+EVALUATION = "an evaluation"
+OUTPUT_KINDS: tuple[tuple[str, tuple[str, ...]], ...] = (
+    ("a dataset", ("manifest.json", "meta.json")),
+    ("a training run", ("config.json", "checkpoints", "log.jsonl")),
+    ("a checkpoint", ("model.safetensors", "policy.json")),
+    (EVALUATION, ("report.json", "rollouts")),
+)
+RECORDINGS = "a folder of recorded episodes"  # one holding episode files (*.mcap)
+
+
+def output_kind(path: str | os.PathLike) -> str | None:
+    """Which command's output ``path`` is, by what it holds; None for a missing, empty or other folder."""
+    p = Path(path)
+    if not p.is_dir():
+        return None
+    for kind, names in OUTPUT_KINDS:
+        if any((p / name).exists() for name in names):
+            return kind
+    return RECORDINGS if any(p.glob("*.mcap")) else None
+
+
+def refuse_other_output(path: str | os.PathLike, argument: str, own: str) -> None:
+    """OutputError when ``path`` is another command's output: what this one writes would go in among
+    its files (the command's own kind, ``own``, is where it writes more)."""
+    kind = output_kind(path)
+    if kind is not None and kind != own:
+        raise OutputError(f"{argument} {path} is {kind}: choose another folder (a new one is made)")
+
+
 @contextlib.contextmanager
 def output_dir(path: str | os.PathLike, argument: str, keep_empty: bool = True) -> Iterator[Path]:
     """``writable_dir`` for a command's output, taken back when the command fails: where ``path``

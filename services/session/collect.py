@@ -23,7 +23,7 @@ from pathlib import Path
 
 from services.core.bus import Bus, BusConfig, free_tcp_port, router
 from services.core.config import ConfigError, load_config
-from services.core.runtime import child_env, writable_dir
+from services.core.runtime import RECORDINGS, child_env, refuse_other_output, writable_dir
 from services.recorder.config import RecorderConfig
 from services.router.credentials import USERS_FILE, password_path, write_credentials
 from services.session.config import SessionConfig
@@ -210,6 +210,7 @@ def collect(
         overrides.setdefault(name, []).extend(items)
     stack = LocalStack(out, config, overrides, auth=auth)
     stack.check()  # a wrong --set is one error before anything starts (and before --out is made)
+    refuse_other_output(out, "--out", RECORDINGS)  # (episodes in among a dataset's or a run's files)
     writable_dir(out, "--out")
     progress(f"starting sim ({task}, rig {rig}), teleop (scripted) and recorder -> {out}")
     with stack:

@@ -38,7 +38,7 @@ from typing import Any
 from services.core.bus import Bus
 from services.core.config import ConfigError, named_twice
 from services.core.rig import load_rig
-from services.core.runtime import OutputError, child_env, exclusive, writable_dir
+from services.core.runtime import EVALUATION, OutputError, child_env, exclusive, refuse_other_output, writable_dir
 from services.core.stats import percentile, wilson
 from services.policy.aggregation import CompositionError, renormalise
 from services.policy.checkpoint import read_info, resolve_checkpoint
@@ -369,6 +369,7 @@ def evaluate(spec: EvalSpec, out: Path, progress: Callable[[str], None] = print)
         raise EvalError(f"{rollouts} already holds rollouts: pick another --out (or remove it)")
     held = contextlib.ExitStack()
     try:
+        refuse_other_output(out, "--out", EVALUATION)  # (a report and rollouts among other files)
         writable_dir(out, "--out")
         # one evaluation per folder: a second one would record over its rollouts and statistics
         held.enter_context(exclusive(out, "evaluation"))

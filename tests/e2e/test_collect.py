@@ -139,6 +139,16 @@ def test_bad_arguments_fail_fast_with_one_line(tmp_path):
     )
     says = f"error: --out {blocker / 'sub'}: not a directory ({blocker} is a file)"
     assert proc.returncode == 2 and proc.stderr.strip() == says
+    # another command's output: the episodes would go in among its files (before: exit 0, they did)
+    ds = tmp_path / "ds"
+    ds.mkdir()
+    (ds / "manifest.json").write_text("{}")
+    proc = run_collect(ds, timeout=60)
+    assert (
+        proc.returncode == 2
+        and proc.stderr.strip() == f"error: --out {ds} is a dataset: choose another folder (a new one is made)"
+    )
+    assert sorted(p.name for p in ds.iterdir()) == ["manifest.json"]
 
 
 def test_sigterm_mid_session_keeps_the_partial_episode_and_stops_every_service(tmp_path):

@@ -137,6 +137,8 @@ def test_eval_refuses_bad_input_with_one_line_before_starting_anything(tiny_chec
         ([*ck, "--expert"], "--expert evaluates the scripted expert: leave out --checkpoint and --server"),
         (["--checkpoint", str(tmp_path / "none")], f"checkpoint {tmp_path / 'none'} does not exist"),
         ([*ck, "--out", str(note)], f"--out {note}: not a directory"),
+        # another command's output: a report and rollouts in among its files (before: exit 0, they were)
+        ([*ck, "--out", str(tiny_checkpoint)], f"--out {tiny_checkpoint} is a training run: choose another folder"),
     ]:
         proc = viewscale("eval", "--out", str(tmp_path / "x"), *args)
         assert proc.returncode == 2, proc.stderr[-2000:]
@@ -196,6 +198,7 @@ def test_rerender_refuses_bad_arguments_before_writing_anything(sim_dataset, tmp
         (["--out", str(raw) + "/"], "is a --raw folder"),
         (["--out", str(tmp_path / "rr"), "--size", "0"], "--size must be 16..4096 px, got 0"),  # was a traceback
         (["--out", str(tmp_path / "a-file")], f"--out {tmp_path / 'a-file'}: not a directory"),
+        (["--out", str(sim_dataset)], f"--out {sim_dataset} is a dataset: choose another folder"),
     ]
     for extra, says in cases:
         assert main(["rerender", "--raw", str(raw), "--rig", "three30", *extra]) == 2, extra

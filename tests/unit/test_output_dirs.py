@@ -91,3 +91,48 @@ def test_exclusive_refuses_a_second_writer_and_frees_the_folder_when_the_first_d
     with exclusive(tmp_path, "training"):
         assert (tmp_path / LOCK_FILE).read_text().startswith("pid ")
     assert not (tmp_path / LOCK_FILE).exists()  # given up: gone
+
+
+def test_another_commands_output_is_told_by_the_names_its_writer_gives():
+    """OUTPUT_KINDS spells the names out (the bottom layer imports none of the writers): they must
+    stay the writers' own."""
+    from services.core.runtime import EVALUATION, OUTPUT_KINDS
+    from services.dataset.store import MANIFEST, META
+    from services.policy.checkpoint import MODEL_FILE, POLICY_FILE
+    from services.trainer.train import RUN_FILES
+
+    kinds = dict(OUTPUT_KINDS)
+    assert kinds["a dataset"] == (MANIFEST, META)
+    assert kinds["a training run"] == RUN_FILES
+    assert kinds["a checkpoint"] == (MODEL_FILE, POLICY_FILE)
+    assert kinds[EVALUATION] == ("report.json", "rollouts")  # services/session/evaluate.py writes these
+
+
+@pytest.mark.parametrize(
+    ("holds", "kind"),
+    [
+        ([], None),
+        (["notes.txt"], None),
+        (["ep.mcap", "logs/"], "a folder of recorded episodes"),
+        (["manifest.json", "episodes/"], "a dataset"),
+        (["config.json", "log.jsonl"], "a training run"),
+        (["checkpoints/"], "a training run"),
+        (["model.safetensors", "policy.json"], "a checkpoint"),
+        (["rollouts/", "logs/"], "an evaluation"),
+    ],
+)
+def test_output_kind_and_refusing_another_commands_folder(tmp_path, holds, kind):
+    from services.core.runtime import RECORDINGS, output_kind, refuse_other_output
+
+    out = tmp_path / "out"
+    out.mkdir()
+    for name in holds:
+        (out / name.rstrip("/")).mkdir() if name.endswith("/") else (out / name).write_text("kept")
+    before = sorted(p.name for p in out.iterdir())
+    assert output_kind(out) == kind and output_kind(tmp_path / "missing") is None
+    if kind in (None, RECORDINGS):
+        refuse_other_output(out, "--out", RECORDINGS)  # where collect and rerender write more episodes
+    else:
+        with pytest.raises(OutputError, match=rf"^--out {out} is {kind}: choose another folder"):
+            refuse_other_output(out, "--out", RECORDINGS)
+    assert sorted(p.name for p in out.iterdir()) == before
