@@ -8,7 +8,7 @@ from collections.abc import Callable
 from typing import TypeVar
 
 from services.core.config import ConfigError, load_config, log_level_name
-from services.core.runtime import configure_logging
+from services.core.runtime import OutputError, configure_logging
 
 C = TypeVar("C")
 
@@ -48,6 +48,7 @@ def service_main(
     configure_logging(getattr(cfg, "log_level", "INFO"))
     try:
         return main(cfg)
-    except (ConfigError, ConnectionError) as exc:  # a driver that cannot be built, a router not there
+    # a driver that cannot be built, a router not there, an output folder in use or not writable
+    except (ConfigError, ConnectionError, OutputError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

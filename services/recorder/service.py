@@ -18,6 +18,7 @@ flagged ``interrupted``.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import queue
 import threading
@@ -33,7 +34,7 @@ from google.protobuf.message import Message
 
 from services.core.bus import Bus, Received
 from services.core.clock import now_ns
-from services.core.runtime import serve, wait_for_stop
+from services.core.runtime import exclusive, serve, wait_for_stop
 from services.core.topics import (
     APPLIED_ACTION,
     EPISODE,
@@ -114,10 +115,15 @@ class Recorder:
         self._stopping: tuple[EpisodeRequest, Future, float] | None = None  # STOP waiting for its ticks
         self._last_meta = EpisodeMeta()  # the last closed episode, for STATUS when idle
         self._publisher = None
+        self._held: contextlib.AbstractContextManager | None = None  # the out_dir's lock, while open
 
     # -- lifecycle --------------------------------------------------------------------------
     def __enter__(self) -> Recorder:
         self.out_dir.mkdir(parents=True, exist_ok=True)
+        # one recorder per folder: a second one (another session on the same --out) would take
+        # its episodes' ids, and flag the first one's open .part as left over from a crash
+        self._held = exclusive(self.out_dir, "recorder")
+        self._held.__enter__()
         for part in sorted(self.out_dir.glob("*.mcap" + PART_SUFFIX)):
             log.warning(
                 "partial episode %s from an earlier run; recover it with `python -m services.recorder.recover %s`",
@@ -146,6 +152,14 @@ class Recorder:
 
     def close(self) -> None:
         """Write everything queued and close the open episode (flagged interrupted if not stopped)."""
+        try:
+            self._close()
+        finally:
+            if self._held is not None:
+                self._held.__exit__(None, None, None)
+                self._held = None
+
+    def _close(self) -> None:
         if not self._thread.is_alive():
             return
         self._halt.set()

@@ -16,6 +16,7 @@ from polling import wait_for
 from services.core import topics
 from services.core.bus import Bus, BusConfig, free_tcp_port, router
 from services.core.rig import Camera, look_at
+from services.core.runtime import LOCK_FILE
 from services.core.tensors import compressed_image, encode_jpeg
 from services.pb.control_pb2 import AppliedAction
 from services.pb.episode_pb2 import (
@@ -273,7 +274,7 @@ def test_control_queryable_answers_every_command_and_error(net, make_recorder, t
     assert (out / "a.mcap.part").is_file()
     discarded = control(pub, EPISODE_COMMAND_DISCARD, episode_id="a")
     assert discarded.ok and not discarded.recording and discarded.meta.episode_id == "a"
-    assert not list(out.iterdir())
+    assert [p.name for p in out.iterdir()] == [LOCK_FILE]  # nothing but the recorder's hold on the folder
     assert not status(pub).recording
 
     assert start(pub, "c").ok
@@ -292,7 +293,7 @@ def test_control_requests_of_another_type_or_with_absurd_values_are_refused(net,
     sim = SimControlRequest(command=SimCommand.SIM_COMMAND_RESET, task="lift", seed=5, episode_id="x")
     reply = EpisodeReply.FromString(pub.query(topics.EPISODE_CONTROL, sim.SerializeToString(), timeout=15))
     assert not reply.ok and "wrong schema" in reply.error and not status(pub).recording
-    assert not list((tmp_path / "episodes").glob("*"))
+    assert [p.name for p in (tmp_path / "episodes").iterdir()] == [LOCK_FILE]
     assert start(pub, "big").ok
     reply = control(pub, EPISODE_COMMAND_STOP, success=True, ticks=10**9)
     assert not reply.ok and "ticks = 1000000000" in reply.error and status(pub).recording  # nothing stored
@@ -490,3 +491,23 @@ def test_shutdown_closes_the_open_episode_as_interrupted(net, tmp_path):
     assert not (tmp_path / "episodes" / "cut.mcap.part").exists()
     ep = read_episode(tmp_path / "episodes" / "cut.mcap")
     assert any(f.startswith("interrupted") for f in ep.flags) and ep.metadata["frames"] == {"F": 5}
+
+
+def test_a_second_recorder_on_the_same_folder_is_refused(net, make_recorder, tmp_path):
+    """(two sessions on one --out: the second one's recorder took the first one's episode ids, and
+    warned about its open .part as left over from a crash)"""
+    from services.core.runtime import OutputError
+
+    make_recorder()  # holds tmp_path / "episodes"
+    cfg = RecorderConfig(bus=net.bus_config(), out_dir=tmp_path / "episodes")
+    with Bus(cfg.bus) as bus:
+        with pytest.raises(OutputError, match=r"episodes is in use by another recorder \(pid \d+"):
+            Recorder(cfg, bus).__enter__()
+    # another folder is fine, and a folder whose recorder closed is free again, its lock file gone
+    other = RecorderConfig(bus=net.bus_config(), out_dir=tmp_path / "other")
+    with Bus(other.bus) as bus:
+        with Recorder(other, bus):
+            assert (tmp_path / "other" / LOCK_FILE).exists()
+        assert not (tmp_path / "other" / LOCK_FILE).exists()
+        with Recorder(other, bus):
+            pass
