@@ -152,6 +152,10 @@ def parse(req: ActionRequest, spec: PolicySpec, default_views: list[str], max_re
     sid = req.session_id
     if not sid or len(sid) > MAX_SESSION_ID or not sid.isprintable():
         raise InvalidRequest(f"session_id: must be 1-{MAX_SESSION_ID} printable characters, got {sid[:40]!r}")
+    if req.seq == 0:  # (unset: the first request went through and every later one was ABORTED, "not newer")
+        raise InvalidRequest(
+            "seq: 0 or not set: number each session's requests 1, 2, 3, ... (a newer one cancels an older one)"
+        )
     order = spec.camera_order
     wanted = list(req.views) or list(default_views)
     unknown = [v for v in wanted if v not in spec.cameras]

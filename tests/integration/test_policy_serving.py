@@ -502,9 +502,12 @@ def test_malformed_requests_are_refused_with_the_field_and_the_server_stays_up(c
             if kind == 8:
                 req.gamma["F"] = -1.0
                 return req, "gamma: the weight of F must be finite and non-negative, got -1.0"
-            if kind == 9:
+            if i % 24 == 9:
                 req.session_id = ""
                 return req, "session_id"
+            if kind == 9:  # a hand-written client that never sets it
+                req.ClearField("seq")
+                return req, "seq: 0 or not set: number each session's requests 1, 2, 3, ..."
             if kind == 10:
                 del req.states[:]
                 return req, "states: expected 2 states, got 0"
