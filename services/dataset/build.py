@@ -175,14 +175,16 @@ POLICY_SOURCE = "policy"
 
 def demonstrations(
     sources: list[Path], include_failed: bool = False, include_rollouts: bool = False
-) -> tuple[list[Path], list[dict[str, str]]]:
-    """The episode files to learn from, and the others as {file, episode, reason}: not marked
-    successful (a demonstration stopped as a failure, an evaluation's failed rollout, a recovered
-    episode nobody stopped), or driven by a policy (a rollout, successful or not: what the policy
-    already does, not a demonstration). Only each file's metadata is read; a file whose metadata
-    cannot be read is kept, so that the build reports it (or --skip-bad skips it)."""
+) -> tuple[list[Path], list[dict[str, str]], dict[Path, dict[str, Any]]]:
+    """The episode files to learn from, the others as {file, episode, reason}, and the metadata of
+    those kept. Left out: not marked successful (a demonstration stopped as a failure, an
+    evaluation's failed rollout, a recovered episode nobody stopped), or driven by a policy (a
+    rollout, successful or not: what the policy already does, not a demonstration). Only each
+    file's metadata is read; a file whose metadata cannot be read is kept, so that the build
+    reports it (or --skip-bad skips it)."""
     kept: list[Path] = []
     left: list[dict[str, str]] = []
+    metas: dict[Path, dict[str, Any]] = {}
     for src in sources:
         try:
             md = read_episode(src, topics=()).metadata
@@ -201,7 +203,42 @@ def demonstrations(
             left.append({"file": str(src), "episode": str(md.get("episode_id") or src.stem), "reason": ", ".join(why)})
         else:
             kept.append(src)
-    return kept, left
+            metas[src] = md
+    return kept, left, metas
+
+
+def _by(metas: dict[Path, dict[str, Any]], key: str) -> dict[Any, list[str]]:
+    """The episodes' ids by the value of metadata ``key`` (those that have one)."""
+    out: dict[Any, list[str]] = {}
+    for src, md in metas.items():
+        if md.get(key):
+            out.setdefault(md[key], []).append(str(md.get("episode_id") or src.stem))
+    return dict(sorted(out.items()))
+
+
+def _ids(ids: list[str]) -> str:
+    return ", ".join(ids[:3]) + (f" and {len(ids) - 3} more" if len(ids) > 3 else "")
+
+
+def check_mix(metas: dict[Path, dict[str, Any]], progress: Callable[[str], None]) -> None:
+    """Refuse episodes recorded at different control rates: their actions are per-tick deltas, so
+    one rate's steps are another's multiple, and the policy serves at one rate. Warn about
+    episodes of several tasks: the policy is not told which task it is in."""
+    rates = _by(metas, "control_hz")
+    if len(rates) > 1:
+        raise DatasetError(
+            "episodes recorded at different control rates ("
+            + "; ".join(f"{hz:g} Hz: {_ids(ids)}" for hz, ids in rates.items())
+            + "): an action is one tick's motion, so they do not mix; build each rate's episodes on "
+            "their own (--raw FILE ... or one folder per rate)"
+        )
+    tasks = _by(metas, "task")
+    if len(tasks) > 1:
+        progress(
+            f"warning: episodes of {len(tasks)} tasks ("
+            + ", ".join(f"{t} {len(ids)}" for t, ids in tasks.items())
+            + "): a policy trained on them is not told which task it is in"
+        )
 
 
 def _jpeg_size(data: bytes) -> tuple[int, int] | None:
@@ -644,7 +681,7 @@ def build_dataset(
     out = Path(out)
     sources = find_episodes(raw)
     _check_output(out)
-    sources, left_out = demonstrations(sources, include_failed, include_rollouts)
+    sources, left_out, metas = demonstrations(sources, include_failed, include_rollouts)
     for line in left_out_lines(left_out):
         progress(line)
     if not sources:
@@ -653,6 +690,7 @@ def build_dataset(
             + "; ".join(left_out_lines(left_out))
             + ")"
         )
+    check_mix(metas, progress)
     old = _read_manifest(out)
     hashes, stats = _hash_sources(sources, old, force, progress)
     wanted = _manifest(params, sources, hashes, stats)

@@ -83,6 +83,7 @@ def write_episode(
     scale: float = 1.0,
     state_fields: dict[int, dict] | None = None,
     command_sources: list[str] = (),
+    task: str = "lift",
 ) -> Path:
     """Write ``<out_dir>/<episode_id>.mcap``; returns its path."""
     rg = load_rig(rig)
@@ -138,7 +139,7 @@ def write_episode(
             w.write_message(topics.APPLIED_ACTION.mcap_topic, applied, stamp + period // 2, stamp + period // 2)
     meta = EpisodeMeta(
         episode_id=episode_id,
-        task="lift",
+        task=task,
         seed=seed,
         rig=rig,
         success=success,

@@ -596,3 +596,24 @@ def test_failed_episodes_and_policy_rollouts_are_left_out_unless_asked_for(tmp_p
     err = capsys.readouterr().err
     assert rc == 2 and "error: none of the 2 episodes is a demonstration to learn from" in err, err
     assert not (tmp_path / "none").exists()
+
+
+def test_episodes_of_other_control_rates_are_refused_and_other_tasks_warned_about(tmp_path, capsys):
+    """(10 Hz and 20 Hz episodes were built into one dataset whose control_hz was then None, and the
+    server took 20 Hz; episodes of two tasks, without a word)"""
+    raw = tmp_path / "raw"
+    for i in range(4):
+        write_episode(raw, f"ep-20hz-{i}", 24, cameras=["F"], seed=i)
+    write_episode(raw, "ep-10hz", 24, cameras=["F"], seed=9, control_hz=10.0)
+    out = tmp_path / "ds"
+    rc = viewscale(["dataset", "build", "--raw", str(raw), "--out", str(out), "--views", "F"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "error: episodes recorded at different control rates (10 Hz: ep-10hz; 20 Hz: " in err, err
+    assert "ep-20hz-0, ep-20hz-1, ep-20hz-2 and 1 more)" in err and "build each rate's episodes on their own" in err
+    assert not out.exists()
+    (raw / "ep-10hz.mcap").unlink()
+    write_episode(raw, "can-0", 24, cameras=["F"], seed=10, task="can")
+    rc = viewscale(["dataset", "build", "--raw", str(raw), "--out", str(out), "--views", "F"])
+    err = capsys.readouterr().err
+    assert rc == 0 and "warning: episodes of 2 tasks (can 1, lift 4): a policy trained on them is not told" in err
+    assert DatasetStore(out).meta["tasks"] == ["can", "lift"]
