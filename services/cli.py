@@ -291,7 +291,9 @@ def _router(args: argparse.Namespace) -> int:
 def _credentials(args: argparse.Namespace) -> int:
     from services.router.credentials import SERVICE_USERS, USERS_FILE, write_credentials
 
-    users = [u.strip() for u in args.users.split(",")] if args.users else list(SERVICE_USERS)
+    # (a name given twice is written once: the summary said it twice; an empty --users is an error,
+    # not every user of the ACL)
+    users = list(dict.fromkeys(u.strip() for u in args.users.split(","))) if args.users is not None else SERVICE_USERS
     try:
         write_credentials(Path(args.out), users, force=args.force)
     except (ValueError, OSError) as exc:

@@ -146,3 +146,14 @@ def test_credentials_into_a_file_or_under_one_is_one_clear_error_and_changes_not
     assert viewscale(["credentials", "--out", str(note / "secrets")]) == 2
     assert f"--out {note / 'secrets'}: not a directory ({note} is a file)" in capsys.readouterr().err
     assert note.read_text() == "keep me\n" and sorted(tmp_path.iterdir()) == [note]
+
+
+def test_credentials_of_a_name_given_twice_are_written_once_and_no_name_is_an_error(tmp_path, capsys):
+    out = tmp_path / "secrets"
+    assert viewscale(["credentials", "--out", str(out), "--users", "operator,viewer,operator"]) == 0
+    printed = capsys.readouterr().out
+    assert printed.startswith(f"wrote 2 passwords to {out} ") and "operator.password, viewer.password for" in printed
+    assert [line.split(":", 1)[0] for line in (out / USERS_FILE).read_text().splitlines()] == ["operator", "viewer"]
+    # (an empty --users, as from an unset variable, wrote every user of the ACL)
+    assert viewscale(["credentials", "--out", str(tmp_path / "none"), "--users", ""]) == 2
+    assert "user name ''" in capsys.readouterr().err and not (tmp_path / "none" / USERS_FILE).exists()
