@@ -147,11 +147,17 @@ def _finite(values, n: int, name: str) -> np.ndarray:
     return arr
 
 
+def check_session_id(sid: str) -> None:
+    """InvalidRequest unless ``sid`` names a session: 1-MAX_SESSION_ID printable characters (a
+    session is kept by its id: an id of megabytes would be kept too)."""
+    if not sid or len(sid) > MAX_SESSION_ID or not sid.isprintable():
+        raise InvalidRequest(f"session_id: must be 1-{MAX_SESSION_ID} printable characters, got {sid[:40]!r}")
+
+
 def parse(req: ActionRequest, spec: PolicySpec, default_views: list[str], max_reach_m: float = MAX_REACH_M) -> Parsed:
     """Check every field of ``req``; raise InvalidRequest naming the first bad one."""
     sid = req.session_id
-    if not sid or len(sid) > MAX_SESSION_ID or not sid.isprintable():
-        raise InvalidRequest(f"session_id: must be 1-{MAX_SESSION_ID} printable characters, got {sid[:40]!r}")
+    check_session_id(sid)
     if req.seq == 0:  # (unset: the first request went through and every later one was ABORTED, "not newer")
         raise InvalidRequest(
             "seq: 0 or not set: number each session's requests 1, 2, 3, ... (a newer one cancels an older one)"

@@ -65,7 +65,15 @@ from services.policy.checkpoint import checkpoint_sha256, model_id, read_info
 from services.policy.config import MAX_REACH_M, PLACEMENTS, open_to_others
 from services.policy.model.diffusion import make_inference_scheduler
 from services.policy.model.policy import NoiseConfig
-from services.policy.observation import CameraSpec, InvalidRequest, Parsed, PolicySpec, model_inputs, parse
+from services.policy.observation import (
+    CameraSpec,
+    InvalidRequest,
+    Parsed,
+    PolicySpec,
+    check_session_id,
+    model_inputs,
+    parse,
+)
 from services.policy.transport import (
     EXCLUSIVE_PORT,
     keepalive_channel_options,
@@ -817,6 +825,10 @@ class PolicyService(policy_pb2_grpc.PolicyServicer):
         return self.info()
 
     async def Reset(self, request, context) -> policy_pb2.ResetReply:
+        try:
+            check_session_id(request.session_id)  # (any id, of any length, was kept as a session)
+        except InvalidRequest as exc:
+            await context.abort(grpc.StatusCode.INVALID_ARGUMENT, str(exc))
         existed = self.sessions.pop(request.session_id, None)  # a running request sees it is gone and stops
         if request.HasField("seed"):
             self._session(request.session_id).generator.manual_seed(int(request.seed))

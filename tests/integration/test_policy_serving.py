@@ -532,6 +532,13 @@ def test_malformed_requests_are_refused_with_the_field_and_the_server_stays_up(c
         with pytest.raises(grpc.RpcError) as err:
             stub.GetAction(big, timeout=10)
         assert err.value.code() == grpc.StatusCode.RESOURCE_EXHAUSTED
+        # Reset checks its session id too (an id of megabytes, with a seed, was kept as a session)
+        for sid in ("", "x" * (1 << 20), "bad\nid"):
+            with pytest.raises(grpc.RpcError) as err:
+                stub.Reset(policy_pb2.ResetRequest(session_id=sid, seed=1), timeout=10)
+            assert err.value.code() == grpc.StatusCode.INVALID_ARGUMENT and "session_id" in err.value.details()
+        good_client.reset(seed=3)  # a good id: the session is made, with its seed
+        assert good_client.reset(seed=3) is True
         assert good_client.get_action(frames, states).actions.shape == (16, 7)  # still answering
     finally:
         stop(proc)
