@@ -134,7 +134,7 @@ def writable_dir(path: str | os.PathLike, argument: str) -> Path:
 
 # What marks a folder as one command's output: its kind, and names any one of which it holds. The
 # names are the writers' own (services.dataset.store, services.trainer.train, services.policy.
-# checkpoint, services.session.evaluate; tests/unit/test_runtime.py holds them to those).
+# checkpoint, services.session.evaluate; tests/unit/test_output_dirs.py holds them to those).
 EVALUATION = "an evaluation"
 OUTPUT_KINDS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("a dataset", ("manifest.json", "meta.json")),
