@@ -144,8 +144,9 @@ def _write_json(path: Path, data: Any) -> None:
     os.replace(tmp, path)
 
 
-def find_episodes(raw: Path | list[Path]) -> list[Path]:
-    """Episode files under a directory (recursively) or given one by one, sorted by path."""
+def find_episodes(raw: Path | list[Path], unique: bool = True) -> list[Path]:
+    """Episode files under a directory (recursively) or given one by one, sorted by path; with
+    ``unique``, DatasetError for two files of one episode id (``unique_names``)."""
     paths = raw if isinstance(raw, list) else [raw]
     found: list[Path] = []
     for p in paths:
@@ -160,12 +161,18 @@ def find_episodes(raw: Path | list[Path]) -> list[Path]:
             raise DatasetError(f"raw data path {p} does not exist")
     if not found:
         raise DatasetError(f"no episode files (*.mcap) under {', '.join(str(p) for p in paths)}")
+    if unique:
+        unique_names(found)
+    return found
+
+
+def unique_names(files: list[Path]) -> None:
+    """DatasetError for two files of one name: their episodes would be built into one folder."""
     stems: dict[str, Path] = {}
-    for f in found:
+    for f in files:
         if f.stem in stems:
             raise DatasetError(f"two episodes named {f.stem}: {stems[f.stem]} and {f}")
         stems[f.stem] = f
-    return found
 
 
 # EefCommand.source of a policy's commands: the teleop service sends its driver's type, and the
@@ -679,7 +686,7 @@ def build_dataset(
     """
     t0 = time.perf_counter()
     out = Path(out)
-    sources = find_episodes(raw)
+    sources = find_episodes(raw, unique=False)  # (names need be unique among the episodes built only)
     _check_output(out)
     sources, left_out, metas = demonstrations(sources, include_failed, include_rollouts)
     for line in left_out_lines(left_out):
@@ -690,6 +697,7 @@ def build_dataset(
             + "; ".join(left_out_lines(left_out))
             + ")"
         )
+    unique_names(sources)
     check_mix(metas, progress)
     old = _read_manifest(out)
     hashes, stats = _hash_sources(sources, old, force, progress)

@@ -68,7 +68,9 @@ def _build(args: argparse.Namespace) -> int:
             raise DatasetError(f"--jobs must be at least 1, got {args.jobs}")
         if args.contact_episodes < 0:
             raise DatasetError(f"--contact-episodes must be 0 or more, got {args.contact_episodes}")
-        episodes = find_episodes([Path(p) for p in args.raw])  # a wrong --raw: no empty --out left behind
+        # a wrong --raw: no empty --out left behind (the same episode ids in two evaluations' rollouts,
+        # which the build leaves out, are no clash)
+        episodes = find_episodes([Path(p) for p in args.raw], unique=False)
         # made before an hour of decoding, not after; taken back if the build fails before writing
         with output_dir(args.out, "--out"), exclusive(args.out, "dataset build"):
             result = build_dataset(

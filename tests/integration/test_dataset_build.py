@@ -617,3 +617,19 @@ def test_episodes_of_other_control_rates_are_refused_and_other_tasks_warned_abou
     err = capsys.readouterr().err
     assert rc == 0 and "warning: episodes of 2 tasks (can 1, lift 4): a policy trained on them is not told" in err
     assert DatasetStore(out).meta["tasks"] == ["can", "lift"]
+
+
+def test_the_same_rollout_ids_in_two_evaluations_are_no_clash_when_left_out(tmp_path, capsys):
+    """(`--raw data/demo` stopped at "two episodes named lift-five15-eval-s100000": the two
+    evaluations' rollouts share their fixed seeds' ids, and they are not built anyway)"""
+    raw = tmp_path / "demo"
+    write_episode(raw / "raw", "demo-0", 24, cameras=["F"], seed=0)
+    for ev in ("eval-F", "eval-composed"):
+        write_episode(raw / ev / "rollouts", "rollout-s100000", 24, cameras=["F"], seed=5, command_sources=["policy"])
+    out = tmp_path / "ds"
+    rc = viewscale(["dataset", "build", "--raw", str(raw), "--out", str(out), "--views", "F"])
+    assert rc == 0, capsys.readouterr().err
+    assert [e["id"] for e in DatasetStore(out).meta["episodes"]] == ["demo-0"]
+    # built, the two would be one episode folder: refused as before
+    rc = viewscale(["dataset", "build", "--raw", str(raw), "--out", str(out), "--views", "F", "--include-rollouts"])
+    assert rc == 2 and "error: two episodes named rollout-s100000: " in capsys.readouterr().err
