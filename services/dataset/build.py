@@ -571,14 +571,32 @@ def _prune(out: Path, episodes: list[dict[str, Any]]) -> None:
         raise DatasetError(f"episode id {dup[0]} appears in more than one file")
 
 
-def split_episodes(ids: list[str], val_fraction: float = 0.1, seed: int = 0) -> tuple[list[str], list[str]]:
+def split_episodes(
+    ids: list[str], val_fraction: float = 0.1, seed: int = 0, groups: dict[str, str] | None = None
+) -> tuple[list[str], list[str]]:
     """(train ids, val ids), by episode and deterministic: episodes ranked by a hash of (seed, id),
-    the first ``val_fraction`` of them held out; at least one when there are two or more."""
-    ranked = sorted(ids, key=lambda i: hashlib.sha256(f"{seed}:{i}".encode()).hexdigest())
-    n_val = max(1, round(val_fraction * len(ids))) if val_fraction > 0 and len(ids) >= 2 else 0
-    n_val = min(n_val, len(ids) - 1) if ids else 0
+    the first ``val_fraction`` of them held out; at least one when there are two or more.
+
+    ``groups`` (id -> group) keeps the episodes of one group on one side: a demonstration and its
+    re-renderings are one trajectory, and one of them held out while another is trained on would
+    be validation on training data. Without groups, each episode is its own."""
+    group = (groups or {}).get
+    keys = list(dict.fromkeys(group(i, i) for i in ids))
+    ranked = sorted(keys, key=lambda k: hashlib.sha256(f"{seed}:{k}".encode()).hexdigest())
+    n_val = max(1, round(val_fraction * len(keys))) if val_fraction > 0 and len(keys) >= 2 else 0
+    n_val = min(n_val, len(keys) - 1) if keys else 0
     val = set(ranked[:n_val])
-    return [i for i in ids if i not in val], [i for i in ids if i in val]
+    return [i for i in ids if group(i, i) not in val], [i for i in ids if group(i, i) in val]
+
+
+def trajectory_groups(metas: dict[Path, dict[str, Any]]) -> dict[str, str]:
+    """Episode id -> the id of the recording it was re-rendered from (``viewscale rerender`` names
+    its source file, <episode id>.mcap, in ``rerendered_from``), for the re-rendered ones."""
+    return {
+        str(md.get("episode_id") or src.stem): Path(md["rerendered_from"]).stem
+        for src, md in metas.items()
+        if md.get("rerendered_from")
+    }
 
 
 def _fit_normalizer(out: Path, episodes: list[dict[str, Any]], views: tuple[str, ...], train: list[str]) -> Normalizer:
@@ -717,7 +735,9 @@ def build_dataset(
     episode_seconds = time.perf_counter() - t_eps
     _prune(out, got.episodes)
 
-    train, val = split_episodes([e["id"] for e in got.episodes], params.val_fraction, params.split_seed)
+    train, val = split_episodes(
+        [e["id"] for e in got.episodes], params.val_fraction, params.split_seed, trajectory_groups(metas)
+    )
     norm = _fit_normalizer(out, got.episodes, params.views, train)
     norm.save(out / NORMALIZER)
     meta = _meta(params, got.episodes, train, val)

@@ -84,6 +84,7 @@ def write_episode(
     state_fields: dict[int, dict] | None = None,
     command_sources: list[str] = (),
     task: str = "lift",
+    rerendered_from: str = "",
 ) -> Path:
     """Write ``<out_dir>/<episode_id>.mcap``; returns its path."""
     rg = load_rig(rig)
@@ -144,6 +145,7 @@ def write_episode(
         rig=rig,
         success=success,
         command_sources=command_sources,
+        rerendered_from=rerendered_from,
         control_hz=control_hz,
         achieved_hz=control_hz,
         ticks=n,

@@ -633,3 +633,27 @@ def test_the_same_rollout_ids_in_two_evaluations_are_no_clash_when_left_out(tmp_
     # built, the two would be one episode folder: refused as before
     rc = viewscale(["dataset", "build", "--raw", str(raw), "--out", str(out), "--views", "F", "--include-rollouts"])
     assert rc == 2 and "error: two episodes named rollout-s100000: " in capsys.readouterr().err
+
+
+def test_a_recording_and_its_re_renderings_are_held_out_together(tmp_path, capsys):
+    """(a demonstration could be held out while its re-rendering through another rig -- the same
+    trajectory -- was trained on: validation on training data)"""
+    raw = tmp_path / "raw"
+    ids = [f"ep{i}" for i in range(6)]
+    for i, ep in enumerate(ids):
+        src = write_episode(raw, ep, 24, cameras=["F"], seed=i)
+        write_episode(raw / "three30", f"{ep}-three30", 24, cameras=["F"], seed=i, rerendered_from=str(src))
+    for split_seed in range(4):
+        out = tmp_path / f"ds{split_seed}"
+        args = ["--val-fraction", "0.34", "--split-seed", str(split_seed)]
+        rc = viewscale(["dataset", "build", "--raw", str(raw), "--out", str(out), "--views", "F", *args])
+        assert rc == 0, capsys.readouterr().err
+        split = DatasetStore(out).meta["split"]
+        val = sorted(split["val"])
+        assert len(val) == 4 and {v.removesuffix("-three30") for v in val} == {v for v in val if "-" not in v}, val
+        assert not set(val) & set(split["train"])
+    # without re-renderings, the split is the one it always was
+    assert split_episodes(ids, 0.34, 1) == split_episodes(ids, 0.34, 1, groups={})
+    groups = {f"{ep}-three30": ep for ep in ids}
+    tr, va = split_episodes([*ids, *groups], 0.34, 1, groups)
+    assert {groups.get(v, v) for v in va} == set(split_episodes(ids, 0.34, 1)[1])
