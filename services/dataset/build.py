@@ -15,6 +15,7 @@ import json
 import os
 import shutil
 import time
+from collections import Counter
 from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
@@ -579,14 +580,21 @@ def split_episodes(
 
     ``groups`` (id -> group) keeps the episodes of one group on one side: a demonstration and its
     re-renderings are one trajectory, and one of them held out while another is trained on would
-    be validation on training data. Without groups, each episode is its own."""
-    group = (groups or {}).get
-    keys = list(dict.fromkeys(group(i, i) for i in ids))
+    be validation on training data. An episode alone in its group here, and every episode without
+    groups, is ranked by its own id: a build of re-renderings alone splits as it always did."""
+    groups = groups or {}
+    sizes = Counter(groups.get(i, i) for i in ids)
+
+    def key(i: str) -> str:
+        g = groups.get(i, i)
+        return g if sizes[g] > 1 else i
+
+    keys = list(dict.fromkeys(key(i) for i in ids))
     ranked = sorted(keys, key=lambda k: hashlib.sha256(f"{seed}:{k}".encode()).hexdigest())
     n_val = max(1, round(val_fraction * len(keys))) if val_fraction > 0 and len(keys) >= 2 else 0
     n_val = min(n_val, len(keys) - 1) if keys else 0
     val = set(ranked[:n_val])
-    return [i for i in ids if group(i, i) not in val], [i for i in ids if group(i, i) in val]
+    return [i for i in ids if key(i) not in val], [i for i in ids if key(i) in val]
 
 
 def trajectory_groups(metas: dict[Path, dict[str, Any]]) -> dict[str, str]:

@@ -657,3 +657,5 @@ def test_a_recording_and_its_re_renderings_are_held_out_together(tmp_path, capsy
     groups = {f"{ep}-three30": ep for ep in ids}
     tr, va = split_episodes([*ids, *groups], 0.34, 1, groups)
     assert {groups.get(v, v) for v in va} == set(split_episodes(ids, 0.34, 1)[1])
+    # re-renderings built alone (as the experiments' stages do) split as they always did
+    assert split_episodes(list(groups), 0.34, 1, groups) == split_episodes(list(groups), 0.34, 1)
