@@ -135,9 +135,10 @@ def writable_dir(path: str | os.PathLike, argument: str) -> Path:
 # What marks a folder as one command's output: its kind, and names any one of which it holds. The
 # names are the writers' own (services.dataset.store, services.trainer.train, services.policy.
 # checkpoint, services.session.evaluate; tests/unit/test_output_dirs.py holds them to those).
+DATASET = "a dataset"
 EVALUATION = "an evaluation"
 OUTPUT_KINDS: tuple[tuple[str, tuple[str, ...]], ...] = (
-    ("a dataset", ("manifest.json", "meta.json")),
+    (DATASET, ("manifest.json", "meta.json")),
     ("a training run", ("config.json", "checkpoints", "log.jsonl")),
     ("a checkpoint", ("model.safetensors", "policy.json")),
     (EVALUATION, ("report.json", "rollouts")),

@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 
 from services.core.normalizer import Normalizer
+from services.core.runtime import DATASET, RECORDINGS, output_kind
 
 VERSION = 1
 MANIFEST = "manifest.json"
@@ -70,6 +71,10 @@ class DatasetStore:
             raise DatasetError(f"dataset {self.path} {what}")
         manifest = self.path / MANIFEST
         if not manifest.is_file():
+            kind = output_kind(self.path)  # (a run, a checkpoint, recordings: said as what they are)
+            if kind not in (None, DATASET):
+                build = f": build one from them with `viewscale dataset build --raw {self.path}`"
+                raise DatasetError(f"{self.path} is {kind}, not a dataset" + (build if kind == RECORDINGS else ""))
             hint = (
                 " (a build did not finish: run `viewscale dataset build` again)"
                 if (self.path / EPISODES).is_dir()

@@ -380,6 +380,16 @@ def test_cli_build_and_info(raw_dir, tmp_path, capsys):
     (tmp_path / "bad").mkdir()
     assert viewscale(["dataset", "info", str(tmp_path / "bad")]) == 2
     assert "not a complete dataset" in capsys.readouterr().err
+    # another command's folder is said as what it is (it was "not a complete dataset: no manifest.json")
+    (tmp_path / "run" / "checkpoints").mkdir(parents=True)
+    for path, says in [
+        (raw_dir, f"{raw_dir} is a folder of recorded episodes, not a dataset: build one from them with "),
+        (tmp_path / "run", f"{tmp_path / 'run'} is a training run, not a dataset"),
+    ]:
+        assert viewscale(["dataset", "info", str(path)]) == 2
+        assert capsys.readouterr().err.strip().startswith(f"error: {says}")
+        assert viewscale(["train", "--data", str(path), "--out", str(tmp_path / "new-run")]) == 2
+        assert capsys.readouterr().err.strip().startswith(f"error: {says}")
 
 
 @pytest.mark.parametrize(
