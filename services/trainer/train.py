@@ -524,6 +524,7 @@ def train(
 
     if main:
         out.mkdir(parents=True, exist_ok=True)
+    if main and (latest is None or start < cfg.steps):  # (a run with nothing to train keeps the settings it has)
         run_cfg = cfg.model_dump(mode="json")
         run_cfg["model"] = model_cfg.model_dump(mode="json")
         (out / "config.json").write_text(json.dumps(run_cfg, indent=2) + "\n")

@@ -119,6 +119,12 @@ def test_save_load_and_resume_continue_the_same_run(sim_dataset, tmp_path, caplo
     assert third.step == 6 and third.checkpoint == second.checkpoint
     assert (third.loss, third.val_loss) == (second.loss, second.val_loss) and third.loss is not None
     assert "already at step 6 (steps=6): nothing to train" in caplog.text
+    # fewer steps than done: nothing trained, and the run's config.json keeps the steps it was trained
+    # to (it was rewritten with steps 4)
+    saved = json.loads((tmp_path / "resumed" / "config.json").read_text())
+    fewer = train(train_config_from_dict({**base, "out": str(tmp_path / "resumed"), "steps": 4}))
+    assert fewer.step == 6 and fewer.checkpoint == second.checkpoint
+    assert json.loads((tmp_path / "resumed" / "config.json").read_text()) == saved and saved["steps"] == 6
 
     for name in ("model.safetensors", "train_state.safetensors"):  # EMA, raw weights, AdamW moments, RNG
         a, b = load_file(str(straight.checkpoint / name)), load_file(str(second.checkpoint / name))
