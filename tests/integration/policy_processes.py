@@ -11,6 +11,7 @@ from pathlib import Path
 
 import grpc
 
+from services.core.runtime import child_env
 from services.pb import policy_pb2, policy_pb2_grpc
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -32,7 +33,7 @@ def start(
         stdout=subprocess.PIPE,
         stderr=log,
         text=True,
-        env=env,
+        env=child_env(env),  # dies with the test run, also when a test fails before it stops it
     )
     proc.log_path = Path(log.name)
     log.close()

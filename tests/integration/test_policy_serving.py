@@ -551,11 +551,10 @@ def test_a_chunk_that_is_not_finite_is_never_sent(checkpoint, observations):
     frames, states = observations[0]
     far = [State(np.array([1e30, 0.0, 0.0]), s.eef_quat_wxyz, s.gripper, s.stamp_ns) for s in states]
     worker = start_worker(checkpoint)
-    servers = [
-        start_server(checkpoint, "--in-process", "--set", "max_reach_m=1e38"),
-        start_server(checkpoint, *worker_flags([worker]), "--set", "max_reach_m=1e38"),
-    ]
-    try:
+    servers = []
+    try:  # (a server that fails to start must not leave the worker running)
+        servers.append(start_server(checkpoint, "--in-process", "--set", "max_reach_m=1e38"))
+        servers.append(start_server(checkpoint, *worker_flags([worker]), "--set", "max_reach_m=1e38"))
         for _, addr in servers:
             with PolicyClient(addr, session_id="far") as client:
                 with pytest.raises(PolicyError) as err:
