@@ -36,6 +36,7 @@ from services.dataset.contact_sheet import write_contact_sheet
 from services.dataset.episodes import (
     EpisodeError,
     align,
+    episode_id,
     load_raw_episode,
     segments,
 )
@@ -208,7 +209,7 @@ def demonstrations(
             if leave
         ]
         if why:
-            left.append({"file": str(src), "episode": str(md.get("episode_id") or src.stem), "reason": ", ".join(why)})
+            left.append({"file": str(src), "episode": episode_id(src, md), "reason": ", ".join(why)})
         else:
             kept.append(src)
             metas[src] = md
@@ -220,7 +221,7 @@ def _by(metas: dict[Path, dict[str, Any]], key: str) -> dict[Any, list[str]]:
     out: dict[Any, list[str]] = {}
     for src, md in metas.items():
         if md.get(key):
-            out.setdefault(md[key], []).append(str(md.get("episode_id") or src.stem))
+            out.setdefault(md[key], []).append(episode_id(src, md))
     return dict(sorted(out.items()))
 
 
@@ -601,9 +602,7 @@ def trajectory_groups(metas: dict[Path, dict[str, Any]]) -> dict[str, str]:
     """Episode id -> the id of the recording it was re-rendered from (``viewscale rerender`` names
     its source file, <episode id>.mcap, in ``rerendered_from``), for the re-rendered ones."""
     return {
-        str(md.get("episode_id") or src.stem): Path(md["rerendered_from"]).stem
-        for src, md in metas.items()
-        if md.get("rerendered_from")
+        episode_id(src, md): Path(md["rerendered_from"]).stem for src, md in metas.items() if md.get("rerendered_from")
     }
 
 

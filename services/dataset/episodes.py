@@ -220,6 +220,11 @@ def _moved(a: CameraCalib, b: CameraCalib) -> bool:
     )
 
 
+def episode_id(path: str | Path, metadata: dict[str, Any]) -> str:
+    """An episode's id: its metadata's, or for a file that names none, the file's stem."""
+    return str(metadata.get("episode_id") or Path(path).stem)
+
+
 def load_raw_episode(path: str | Path, views: list[str]) -> RawEpisode:
     """Read the topics a dataset build needs for ``views`` from one recorded episode."""
     path = Path(path)
@@ -288,7 +293,7 @@ def load_raw_episode(path: str | Path, views: list[str]) -> RawEpisode:
     hz = md.get("control_hz")
     return RawEpisode(
         path=path,
-        episode_id=str(md.get("episode_id") or path.stem),
+        episode_id=episode_id(path, md),
         meta=md,
         state_tick=np.array([r.msg.tick for r in states], dtype=np.int64),
         state_ns=np.array([r.publish_time for r in states], dtype=np.int64),

@@ -115,15 +115,14 @@ class Recorder:
         self._stopping: tuple[EpisodeRequest, Future, float] | None = None  # STOP waiting for its ticks
         self._last_meta = EpisodeMeta()  # the last closed episode, for STATUS when idle
         self._publisher = None
-        self._held: contextlib.AbstractContextManager | None = None  # the out_dir's lock, while open
+        self._held = contextlib.ExitStack()  # the out_dir's lock, while open
 
     # -- lifecycle --------------------------------------------------------------------------
     def __enter__(self) -> Recorder:
         self.out_dir.mkdir(parents=True, exist_ok=True)
         # one recorder per folder: a second one (another session on the same --out) would take
         # its episodes' ids, and flag the first one's open .part as left over from a crash
-        self._held = exclusive(self.out_dir, "recorder")
-        self._held.__enter__()
+        self._held.enter_context(exclusive(self.out_dir, "recorder"))
         for part in sorted(self.out_dir.glob("*.mcap" + PART_SUFFIX)):
             log.warning(
                 "partial episode %s from an earlier run; recover it with `python -m services.recorder.recover %s`",
@@ -155,9 +154,7 @@ class Recorder:
         try:
             self._close()
         finally:
-            if self._held is not None:
-                self._held.__exit__(None, None, None)
-                self._held = None
+            self._held.close()  # (once: a second close finds it empty)
 
     def _close(self) -> None:
         if not self._thread.is_alive():
