@@ -42,7 +42,7 @@ from services.dataset.episodes import (
 )
 from services.dataset.pseudo_demos import PseudoDemo, chunk_starts, longest_segment, make_pseudo_demo, no_chunk_fits
 from services.dataset.store import CONTACT_SHEET, EPISODES, MANIFEST, META, NORMALIZER, SUMMARY, VERSION, DatasetError
-from services.dataset.summary import ACTION_LAYOUT, FAILED, ROLLOUT, left_out_lines, summarise
+from services.dataset.summary import ACTION_LAYOUT, FAILED, ROLLOUT, first_few, left_out_lines, summarise
 from services.recorder.reader import EpisodeReadError, read_episode
 
 
@@ -225,10 +225,6 @@ def _by(metas: dict[Path, dict[str, Any]], key: str) -> dict[Any, list[str]]:
     return dict(sorted(out.items()))
 
 
-def _ids(ids: list[str]) -> str:
-    return ", ".join(ids[:3]) + (f" and {len(ids) - 3} more" if len(ids) > 3 else "")
-
-
 def check_mix(metas: dict[Path, dict[str, Any]], progress: Callable[[str], None]) -> None:
     """Refuse episodes recorded at different control rates: their actions are per-tick deltas, so
     one rate's steps are another's multiple, and the policy serves at one rate. Warn about
@@ -237,7 +233,7 @@ def check_mix(metas: dict[Path, dict[str, Any]], progress: Callable[[str], None]
     if len(rates) > 1:
         raise DatasetError(
             "episodes recorded at different control rates ("
-            + "; ".join(f"{hz:g} Hz: {_ids(ids)}" for hz, ids in rates.items())
+            + "; ".join(f"{hz:g} Hz: {first_few(ids)}" for hz, ids in rates.items())
             + "): an action is one tick's motion, so they do not mix; build each rate's episodes on "
             "their own (--raw FILE ... or one folder per rate)"
         )

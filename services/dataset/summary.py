@@ -19,6 +19,11 @@ FAILED = "not marked successful"  # --include-failed
 ROLLOUT = "driven by a policy"  # --include-rollouts
 
 
+def first_few(names: Sequence[str], most: int = 3) -> str:
+    """``names`` for a message: the first ``most`` of them, and how many more there are."""
+    return ", ".join(names[:most]) + (f" and {len(names) - most} more" if len(names) > most else "")
+
+
 def left_out_lines(left_out: Sequence[dict[str, str]], head: str = "left out ") -> list[str]:
     """One line per reason: how many episodes, which, and the flag that builds them anyway."""
     lines = []

@@ -33,6 +33,7 @@ from services.core.config import ConfigError
 from services.core.runtime import LOCK_FILE
 from services.dataset.pseudo_demos import no_chunk_fits
 from services.dataset.store import MANIFEST, DatasetError
+from services.dataset.summary import first_few
 from services.policy import checkpoint as ckpt
 from services.policy.model.diffusion import compute_loss, make_train_scheduler
 from services.policy.model.fastpath import ema_update, gemm_conv1d_pays_off, make_optimizer, use_gemm_conv1d
@@ -417,8 +418,7 @@ def check_run_dir(out: Path) -> None:
     elif ckpt.LATEST in held and out.name == "checkpoints":
         what, advice = "a run's checkpoints folder", f"give the run's folder, {out.parent}, to resume it"
     else:
-        shown = ", ".join(held[:3]) + (f" and {len(held) - 3} more" if len(held) > 3 else "")
-        what = f"a folder of other files ({shown})"
+        what = f"a folder of other files ({first_few(held)})"
     raise ConfigError(f"out {out} is {what}, not a training run: {advice}")
 
 
