@@ -37,6 +37,8 @@ class BoardSpec:
     def __post_init__(self):
         if self.squares_x < 2 or self.squares_y < 2:
             raise CalibrationError(f"a board needs at least 2x2 squares, got {self.squares_x}x{self.squares_y}")
+        if not 0 < self.square_length < float("inf"):
+            raise CalibrationError(f"square length {self.square_length} m must be a positive number of metres")
         if not 0 < self.marker_length < self.square_length:
             raise CalibrationError(
                 f"marker length {self.marker_length} m must be positive and below the square length "

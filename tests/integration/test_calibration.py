@@ -325,6 +325,9 @@ def test_board_image_is_written(tmp_path, capsys):
     assert f"--out {tmp_path / 'new'} is a directory: name the image file" in capsys.readouterr().err
     assert viewscale(["calibrate", "board", "--out", str(tmp_path / "board")]) == 2
     assert "write the board losslessly (.png), not a file without suffix" in capsys.readouterr().err
+    # a negative square (before: 'marker length 0.03 m must be ... below the square length -1.0 m')
+    assert viewscale(["calibrate", "board", "--out", str(tmp_path / "b2.png"), "--square-length", "-1"]) == 2
+    assert "error: square length -1.0 m must be a positive number of metres" in capsys.readouterr().err
 
 
 # -- camera-space dataset builds refuse a missing or stale calibration ------------------------------
