@@ -1,6 +1,7 @@
 """Recover the readable part of an episode file a killed recorder left behind.
 
     python -m services.recorder.recover data/raw/ep0001.mcap.part [...]
+    python -m services.recorder.recover data/raw      # every .mcap.part under it
 
 A ``.part`` file has a header, the ``episode_start`` record and whole chunks up to the one the
 recorder was filling when it died; that last chunk and the summary/footer are missing. This
@@ -30,7 +31,7 @@ from mcap.data_stream import ReadDataStream
 from mcap.opcode import Opcode
 from mcap.records import Attachment, Channel, Chunk, Message, Metadata, Schema
 from mcap.stream_reader import MAGIC_SIZE, breakup_chunk, read_magic
-from mcap.writer import CompressionType
+from mcap.writer import MCAP0_MAGIC, CompressionType
 from mcap.writer import Writer as McapWriter
 
 from services.core.topics import COMMAND, ROBOT_STATE
@@ -105,11 +106,22 @@ def salvage(src: str | Path, out: str | Path | None = None, overwrite: bool = Fa
     """Rewrite the readable records of ``src`` into ``out`` (default: ``src`` without ``.part``)."""
     src = Path(src)
     dst = Path(out) if out is not None else default_output(src)
-    if not src.is_file():
+    if not src.exists():
         raise RecoveryError(f"{src} does not exist")
+    if not src.is_file():
+        raise RecoveryError(f"{src} is not a file")
     if dst.exists() and not overwrite:
         raise RecoveryError(f"{dst} already exists; remove it or pass another output")
     size = src.stat().st_size
+    if size < MAGIC_SIZE:
+        with open(src, "rb") as f:
+            head = f.read()
+        if not MCAP0_MAGIC.startswith(head):
+            raise RecoveryError(f"{src} is not an MCAP file: it holds {size} bytes, and not the MCAP magic")
+        raise RecoveryError(
+            f"{src} holds {size} bytes, less than an MCAP file's magic: its writer stopped before it wrote "
+            "anything; nothing to recover"
+        )
     result = Recovered(source=src, path=dst)
     tmp = dst.with_name(dst.name + ".recovering")
     with open(src, "rb") as f:
@@ -266,16 +278,39 @@ def recover(path_part: str | Path, out: str | Path | None = None) -> Path:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m services.recorder.recover", description=__doc__.split("\n")[0])
-    parser.add_argument("files", nargs="+", type=Path, help="partial episode files (<episode_id>.mcap.part)")
+    parser.add_argument(
+        "files",
+        nargs="+",
+        type=Path,
+        help="partial episode files (<episode_id>.mcap.part), or folders: every .mcap.part under them, "
+        "skipping those already recovered",
+    )
     parser.add_argument("--force", action="store_true", help="overwrite an existing output file")
     args = parser.parse_args(argv)
     failed = 0
-    for src in args.files:
-        try:
-            print(salvage(src, overwrite=args.force).summary(), flush=True)
-        except (RecoveryError, OSError) as exc:
-            print(f"error: {exc}", file=sys.stderr, flush=True)
-            failed += 1
+    for arg in args.files:
+        if not arg.is_dir():
+            sources = [arg]
+        else:
+            sources = sorted(arg.rglob("*.mcap" + PART_SUFFIX))
+            if not sources:
+                print(f"error: {arg} holds no .mcap{PART_SUFFIX} file, at any depth", file=sys.stderr, flush=True)
+                failed += 1
+            done = [] if args.force else [p for p in sources if default_output(p).exists()]
+            if done:
+                print(
+                    f"{arg}: {len(done)} of {len(sources)} .mcap{PART_SUFFIX} files are recovered already "
+                    f"({', '.join(p.name for p in done[:3])}{', ...' if len(done) > 3 else ''}): skipped; "
+                    "--force recovers them again",
+                    flush=True,
+                )
+            sources = [p for p in sources if p not in done]
+        for src in sources:
+            try:
+                print(salvage(src, overwrite=args.force).summary(), flush=True)
+            except (RecoveryError, OSError) as exc:
+                print(f"error: {exc}", file=sys.stderr, flush=True)
+                failed += 1
     return 1 if failed else 0
 
 

@@ -323,3 +323,26 @@ def test_recover_cli_reports_counts_and_refuses_non_mcap(tmp_path, capsys):
     (tmp_path / "junk.mcap.part").write_bytes(b"junk")
     with pytest.raises(RecoveryError, match="junk.mcap.part is not an MCAP"):
         salvage(tmp_path / "junk.mcap.part")
+    # a writer killed before its first flush leaves an empty file (before: 'is not an MCAP file: ')
+    (tmp_path / "empty.mcap.part").write_bytes(b"")
+    with pytest.raises(RecoveryError, match="empty.mcap.part holds 0 bytes, .*nothing to recover"):
+        salvage(tmp_path / "empty.mcap.part")
+
+
+def test_recover_cli_takes_a_folder(tmp_path, capsys):
+    """A folder: every .mcap.part under it, those recovered already skipped (before: 'does not exist')."""
+    w1, _ = write_episode(tmp_path / "a1.mcap", n=20, chunk_size=2048, close=False)
+    (tmp_path / "eval" / "rollouts").mkdir(parents=True)
+    w2, _ = write_episode(tmp_path / "eval" / "rollouts" / "a2.mcap", n=30, chunk_size=2048, close=False)
+    w1.flush(), w2.flush()
+    assert recover_main([str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert read_episode(tmp_path / "a1.mcap").metadata["ticks"] == 20 and "a1.mcap" in out
+    assert read_episode(tmp_path / "eval" / "rollouts" / "a2.mcap").metadata["ticks"] == 30 and "a2.mcap" in out
+    before = (tmp_path / "a1.mcap").stat().st_mtime_ns
+    assert recover_main([str(tmp_path)]) == 0  # again: nothing to do, nothing overwritten
+    assert "2 of 2 .mcap.part files are recovered already" in capsys.readouterr().out
+    assert (tmp_path / "a1.mcap").stat().st_mtime_ns == before
+    (tmp_path / "none").mkdir()
+    assert recover_main([str(tmp_path / "none")]) == 1
+    assert f"error: {tmp_path / 'none'} holds no .mcap.part file" in capsys.readouterr().err
