@@ -44,6 +44,7 @@ from services.dataset.pseudo_demos import PseudoDemo, chunk_starts, longest_segm
 from services.dataset.store import CONTACT_SHEET, EPISODES, MANIFEST, META, NORMALIZER, SUMMARY, VERSION, DatasetError
 from services.dataset.summary import ACTION_LAYOUT, FAILED, ROLLOUT, first_few, left_out_lines, summarise
 from services.recorder.reader import EpisodeReadError, read_episode
+from services.recorder.writer import PART_SUFFIX
 
 
 @dataclass(frozen=True)
@@ -162,10 +163,37 @@ def find_episodes(raw: Path | list[Path], unique: bool = True) -> list[Path]:
         else:
             raise DatasetError(f"raw data path {p} does not exist")
     if not found:
-        raise DatasetError(f"no episode files (*.mcap) under {', '.join(str(p) for p in paths)}")
+        unfinished = unfinished_episodes(paths)
+        raise DatasetError(
+            f"no episode files (*.mcap) under {', '.join(str(p) for p in paths)}"
+            + (f"; {unfinished_line(unfinished)}" if unfinished else "")
+        )
     if unique:
         unique_names(found)
     return found
+
+
+def unfinished_episodes(raw: Path | list[Path]) -> list[Path]:
+    """The ``.mcap.part`` files under the folders of ``raw`` with no ``.mcap`` beside them: episodes
+    being recorded, or whose recorder stopped before it closed them (recover makes the ``.mcap``)."""
+    paths = raw if isinstance(raw, list) else [raw]
+    return sorted(
+        q
+        for p in map(Path, paths)
+        if p.is_dir()
+        for q in p.rglob("*.mcap" + PART_SUFFIX)
+        if not q.with_name(q.name[: -len(PART_SUFFIX)]).exists()
+    )
+
+
+def unfinished_line(unfinished: list[Path]) -> str:
+    folders = sorted({str(p.parent) for p in unfinished})
+    n = len(unfinished)
+    return (
+        f"{n} episode{'s' if n != 1 else ''} not finished, being recorded or left by a recorder that stopped "
+        f"({first_few([p.name for p in unfinished])}): not built; `python -m services.recorder.recover "
+        f"{' '.join(folders[:3])}{' ...' if len(folders) > 3 else ''}` rescues what they hold"
+    )
 
 
 def unique_names(files: list[Path]) -> None:
@@ -709,6 +737,9 @@ def build_dataset(
     out = Path(out)
     sources = find_episodes(raw, unique=False)  # (names need be unique among the episodes built only)
     _check_output(out)
+    unfinished = unfinished_episodes(raw)
+    if unfinished:  # (left out without a word before)
+        progress(f"warning: {unfinished_line(unfinished)}")
     sources, left_out, metas = demonstrations(sources, include_failed, include_rollouts)
     for line in left_out_lines(left_out):
         progress(line)

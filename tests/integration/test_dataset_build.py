@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import shutil
 from pathlib import Path
 
 import cv2
@@ -489,6 +490,28 @@ def test_a_wrong_raw_or_a_file_for_a_dataset_is_one_line_and_leaves_nothing(tmp_
     note.write_text("keep me\n")
     assert viewscale(["dataset", "info", str(note)]) == 2
     assert capsys.readouterr().err.strip() == f"error: dataset {note} is a file, not a folder"
+
+
+def test_unfinished_episodes_are_named_with_the_command_that_rescues_them(raw_dir, tmp_path, capsys):
+    """An episode a killed recorder left as .mcap.part was not built, without a word."""
+    raw = tmp_path / "raw"
+    shutil.copytree(raw_dir, raw)
+    (raw / "day2").mkdir()
+    (raw / "day2" / "ep009.mcap.part").write_bytes((raw / "ep000.mcap").read_bytes()[:5000])
+    (raw / "ep000.mcap.part").write_bytes(b"")  # recovered already (ep000.mcap is beside it): not named
+    said: list[str] = []
+    build_dataset(raw, tmp_path / "ds", BuildParams(views=("F",), image_size=(32, 24)), progress=said.append)
+    [warning] = [m for m in said if m.startswith("warning:")]
+    assert warning == (
+        "warning: 1 episode not finished, being recorded or left by a recorder that stopped (ep009.mcap.part): "
+        f"not built; `python -m services.recorder.recover {raw / 'day2'}` rescues what they hold"
+    )
+    (tmp_path / "only").mkdir()
+    (tmp_path / "only" / "ep1.mcap.part").write_bytes(b"")
+    rc = viewscale(["dataset", "build", "--raw", str(tmp_path / "only"), "--views", "F", "--out", str(tmp_path / "d2")])
+    err = capsys.readouterr().err
+    assert rc == 2 and err.count("\n") == 1, err
+    assert f"error: no episode files (*.mcap) under {tmp_path / 'only'}; 1 episode not finished" in err
 
 
 def test_an_image_size_above_the_recorded_frames_is_warned_about(raw_dir, tmp_path):
