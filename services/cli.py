@@ -247,6 +247,9 @@ def _episode(args: argparse.Namespace) -> int:
         if not 0 < value < math.inf:  # a timeout of -1 would be zenoh's "forever"; nan or inf: no number at all
             print(f"error: {flag} must be a positive number of {unit}, got {value:g}", file=sys.stderr)
             return 2
+    if not 0 <= args.seed < 2**64:  # (before: a ValueError traceback from the protobuf field)
+        print(f"error: --seed must be an integer from 0 to 2**64-1, got {args.seed}", file=sys.stderr)
+        return 2
     req = episode_request(
         args.action,
         episode_id=args.id,

@@ -23,8 +23,10 @@ COMMANDS = {
 
 
 def new_episode_id(task: str, rig: str) -> str:
-    """``<task>-<rig>-<UTC time to the second>``: the id of an episode started by hand."""
-    return f"{task}-{rig}-{datetime.now(timezone.utc).strftime('%Y%m%dT%H%M%S')}"
+    """``<task>-<rig>-<UTC time to the second>``: the id of an episode started by hand; a task or
+    rig not given is left out (neither: ``episode-<time>``)."""
+    head = "-".join(part for part in (task, rig) if part) or "episode"
+    return f"{head}-{datetime.now(timezone.utc).strftime('%Y%m%dT%H%M%S')}"
 
 
 def episode_request(

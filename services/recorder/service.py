@@ -354,6 +354,8 @@ class Recorder:
         ep = self._episode
         if ep is None:
             # Not recording: discard a finished episode's file.
+            if not req.episode_id:  # (before: "invalid episode id ''")
+                return self._error("not recording; a DISCARD with an episode id deletes that finished episode")
             try:
                 path = episode_path(self.out_dir, req.episode_id)
             except ValueError as exc:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -52,6 +53,16 @@ def test_start_status_stop_and_errors(zenoh_endpoint, tmp_path):
         assert "by-hand" in stopped.stdout
         assert (tmp_path / "by-hand.mcap").exists()
         assert cli(zenoh_endpoint, "stop").returncode == 2  # nothing is recording now
+        discard = cli(zenoh_endpoint, "discard")  # (before: "invalid episode id ''")
+        assert discard.returncode == 2
+        assert discard.stderr.strip() == (
+            "error: not recording; a DISCARD with an episode id deletes that finished episode"
+        )
+        # neither --task nor --rig (before: the id '--<time>' was refused as invalid)
+        plain = cli(zenoh_endpoint, "start")
+        assert plain.returncode == 0, plain.stderr
+        assert re.search(r"episode episode-\d{8}T\d{6}\n", plain.stdout), plain.stdout
+        assert cli(zenoh_endpoint, "discard").returncode == 0
     finally:
         rec.terminate()
         rec.wait(timeout=20)
@@ -73,6 +84,8 @@ def test_no_router_is_one_error_line(tmp_path):
         (("--timeout", "nan"), "--timeout must be a positive number of seconds, got nan"),
         (("--hz", "0"), "--hz must be a positive number of Hz, got 0"),
         (("--hz", "inf"), "--hz must be a positive number of Hz, got inf"),
+        (("--seed", "-3"), "--seed must be an integer from 0 to 2**64-1, got -3"),  # was: a traceback
+        (("--seed", str(2**64)), f"--seed must be an integer from 0 to 2**64-1, got {2**64}"),
     ],
 )
 def test_a_bad_timeout_or_rate_is_refused_before_connecting(args, message):
