@@ -28,8 +28,9 @@ from typing import Any
 
 from services.core.bus import Bus
 from services.core.config import ConfigError, deep_merge, parse_overrides, read_yaml
-from services.core.runtime import wait_for_stop
+from services.core.runtime import OutputError, exclusive, output_dir, wait_for_stop
 from services.core.topics import TRAIN_PROGRESS, TRAIN_REQUEST
+from services.dataset.store import DatasetError, DatasetStore
 from services.pb import trainer_pb2
 from services.pb.common_pb2 import Header
 from services.trainer.config import TrainConfig, TrainerServiceConfig, train_config_from_dict
@@ -124,7 +125,7 @@ class TrainerService:
             data["steps"] = int(req.steps)
         try:
             cfg = self._job_config(data, list(req.overrides))
-        except ConfigError as exc:
+        except (ConfigError, DatasetError) as exc:
             return S.TrainReply(ok=False, error=str(exc)).SerializeToString()
         job = self.submit(cfg, req.job_id or None)
         return self._status(S.TrainReply(ok=True, job_id=job.job_id)).SerializeToString()
@@ -133,7 +134,9 @@ class TrainerService:
         merged = deep_merge(parse_overrides(self.cfg.defaults), data)
         merged = deep_merge(merged, parse_overrides(overrides))
         merged.setdefault("progress", False)  # no terminal bar inside a service
-        return train_config_from_dict(merged)
+        cfg = train_config_from_dict(merged)
+        DatasetStore(cfg.data)  # a wrong data folder is refused now, not once the job's turn comes
+        return cfg
 
     def submit(self, cfg: TrainConfig, job_id: str | None = None, file: Path | None = None) -> Job:
         job = Job(job_id or uuid.uuid4().hex[:12], cfg, file)
@@ -159,7 +162,7 @@ class TrainerService:
                 try:
                     raw = json.loads(taken.read_text()) if path.suffix == ".json" else read_yaml(taken)
                     cfg = self._job_config(raw, [])
-                except (ConfigError, ValueError) as exc:
+                except (ConfigError, DatasetError, ValueError) as exc:
                     self._finish_file(taken, "failed", {"error": str(exc)})
                     self._publish(Job(path.stem, TrainConfig(), taken), S.TRAIN_STATE_FAILED, error=str(exc))
                     continue
@@ -192,7 +195,9 @@ class TrainerService:
             else:
                 self._publish(job, S.TRAIN_STATE_RUNNING)
                 try:
-                    res = train(job.cfg, on_progress=lambda ev, j=job: self._on_progress(j, ev), stop=job.stop)
+                    # one training per run folder, as `viewscale train` (which holds the same lock)
+                    with output_dir(job.cfg.out, "out"), exclusive(job.cfg.out, "training"):
+                        res = train(job.cfg, on_progress=lambda ev, j=job: self._on_progress(j, ev), stop=job.stop)
                     outcome = "stopped" if res.stopped else "done"
                     result = {
                         "step": res.step,
@@ -210,7 +215,7 @@ class TrainerService:
                         checkpoint=str(res.checkpoint or ""),
                     )
                     log.info("job %s %s at step %d", job.job_id, outcome, res.step)
-                except (ConfigError, TrainingError, CheckpointError, OSError) as exc:
+                except (ConfigError, DatasetError, TrainingError, CheckpointError, OutputError, OSError) as exc:
                     outcome, result = "failed", {"error": str(exc)}
                     self._publish(job, S.TRAIN_STATE_FAILED, error=str(exc))
                     log.error("job %s failed: %s", job.job_id, exc)

@@ -16,6 +16,7 @@ import pytest
 import torch
 from signals import signal_another_thread
 
+from services.core.runtime import exclusive
 from services.core.topics import TRAIN_PROGRESS, TRAIN_REQUEST
 from services.pb import trainer_pb2 as S
 from services.policy.checkpoint import load_policy
@@ -78,10 +79,26 @@ def test_query_trains_and_publishes_progress(sim_dataset, tmp_path, make_bus):
         bad = S.TrainRequest(data=str(sim_dataset), out=str(tmp_path / "bad"), overrides=["optim.lr=fast"])
         reply = S.TrainReply.FromString(client.query(TRAIN_REQUEST, bad.SerializeToString(), timeout=10))
         assert not reply.ok and "lr" in reply.error
+        # a wrong data folder is refused in the reply (before: queued, then failed when its turn came)
+        bad = S.TrainRequest(data=str(tmp_path / "nowhere"), out=str(tmp_path / "bad"))
+        reply = S.TrainReply.FromString(client.query(TRAIN_REQUEST, bad.SerializeToString(), timeout=10))
+        assert not reply.ok and reply.error == f"dataset {tmp_path / 'nowhere'} does not exist"
         status = S.TrainReply.FromString(
             client.query(TRAIN_REQUEST, S.TrainRequest(command=S.TRAIN_COMMAND_STATUS).SerializeToString(), timeout=10)
         )
         assert status.ok and status.running == "" and list(status.queued) == []
+
+        # a run another training holds (`viewscale train` in a terminal: its lock) is not written into
+        # (before: both trained in it)
+        log_before = (tmp_path / "run" / "log.jsonl").read_bytes()
+        with exclusive(tmp_path / "run", "training"):
+            req = S.TrainRequest(job_id="clash", data=str(sim_dataset), out=str(tmp_path / "run"), steps=5)
+            assert S.TrainReply.FromString(client.query(TRAIN_REQUEST, req.SerializeToString(), timeout=10)).ok
+            msgs = _until(progress, "clash", {S.TRAIN_STATE_DONE, S.TRAIN_STATE_FAILED})
+        assert msgs[-1].state == S.TRAIN_STATE_FAILED
+        assert msgs[-1].error.startswith(f"{tmp_path / 'run'} is in use by another training (pid {os.getpid()}")
+        assert (tmp_path / "run" / "log.jsonl").read_bytes() == log_before
+        assert load_policy(tmp_path / "run").info["step"] == 3
 
 
 def test_job_file_is_taken_trained_and_marked(sim_dataset, tmp_path, make_bus):
