@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
-# `make demo`: the whole chain in sim on this machine, with laptop-CPU defaults (about 15 minutes
-# on an idle 2-core machine): scripted demos -> pseudo-demos -> a short tiny training -> a policy
+# `make demo`: the whole chain in sim on this machine, with laptop-CPU defaults (about 7 minutes
+# on an idle 2-core machine after the install): scripted demos -> pseudo-demos -> a short tiny training -> a policy
 # server with three worker processes -> closed-loop episodes from F alone and composed over
 # F,FL,FR, through the real services -> a summary table.
 # Override with env, e.g. TASK=can EPISODES=20 STEPS=6000 EVAL_EPISODES=50 make demo
@@ -20,10 +20,37 @@ export MUJOCO_GL=${MUJOCO_GL:-egl}
 t0=$(date +%s)
 stamp() { local s=$(($(date +%s) - t0)); printf '[%02d:%02d]' $((s / 60)) $((s % 60)); }
 
-views=$($BIN/python -c "from services.core.rig import load_rig; print(','.join(load_rig('$RIG').names))")
+views=$($BIN/python - "$RIG" <<'EOF'
+import sys
+from services.core.config import ConfigError
+from services.core.rig import load_rig
+try:
+    print(",".join(load_rig(sys.argv[1]).names))
+except ConfigError as exc:
+    sys.exit(f"error: RIG: {exc}")
+EOF
+) || exit 2
+
+# Each run replaces its $OUT: only a folder a demo run made (its marker inside), or an empty one, is
+# removed, so that OUT=data (the README's recordings) or OUT=~ loses nothing.
+MARK=.viewscale-demo
+if [ -e "$OUT" ] && [ ! -f "$OUT/$MARK" ]; then
+  if [ ! -d "$OUT" ]; then
+    echo "error: OUT=$OUT is a file: choose a folder" >&2
+    exit 2
+  fi
+  # (a summary.md the demo wrote: a run made before the marker)
+  if [ -n "$(ls -A "$OUT")" ] && [ "$(head -1 "$OUT/summary.md" 2>/dev/null)" != "# viewscale demo" ]; then
+    echo "error: OUT=$OUT holds files no demo run made (no $MARK in it), and a run replaces its OUT:" \
+      "choose another OUT, or empty this one yourself" >&2
+    exit 2
+  fi
+fi
+rm -rf "$OUT"
+mkdir -p "$OUT"
+echo "made by deploy/demo.sh (make demo); the next run replaces this folder" >"$OUT/$MARK"
 
 echo "$(stamp) == 1/5 collect: $EPISODES scripted '$TASK' episodes, rig $RIG ($views), 84x84 at 20 Hz"
-rm -rf "$OUT"
 $BIN/viewscale collect --task "$TASK" --episodes "$EPISODES" --rig "$RIG" --out "$OUT/raw"
 
 echo
