@@ -172,9 +172,17 @@ def _rerender(args: argparse.Namespace) -> int:
     try:
         _check_size(args.size)
         out = Path(args.out)
-        if any(Path(p).is_dir() and Path(p).resolve() == out.resolve() for p in args.raw):
+        for raw in (Path(p) for p in args.raw if Path(p).is_dir()):
             # its episodes would be read back as recordings: the next run re-renders the re-renders
-            raise ConfigError(f"--out {out} is a --raw folder: write the re-rendered episodes to another one")
+            if raw.resolve() == out.resolve():
+                raise ConfigError(f"--out {out} is a --raw folder: write the re-rendered episodes to another one")
+            if raw.resolve() in out.resolve().parents:  # (before: taken, and read back the same way)
+                beside = raw.resolve().parent / f"{raw.resolve().name}-{Path(args.rig).stem}"
+                raise ConfigError(
+                    f"--out {out} is inside the --raw folder {raw}: the re-rendered episodes would be read back "
+                    f"as recordings of {raw} (re-rendered again by the next rerender, built along with them); "
+                    f"write them beside it, e.g. --out {beside}"
+                )
         episodes = find_episodes([Path(p) for p in args.raw])  # a wrong --raw: no empty --out left behind
         refuse_other_output(out, "--out", RECORDINGS)
         with output_dir(out, "--out", keep_empty=False):  # taken back if nothing was written in it

@@ -196,6 +196,13 @@ def test_rerender_refuses_bad_arguments_before_writing_anything(sim_dataset, tmp
         # its output in the --raw folder: before, a second run re-rendered the re-renders (-three30-three30)
         (["--out", str(raw)], f"--out {raw} is a --raw folder"),
         (["--out", str(raw) + "/"], "is a --raw folder"),
+        # inside it: read back the same way (before: taken)
+        (
+            ["--out", str(raw / "three30")],
+            f"--out {raw / 'three30'} is inside the --raw folder {raw}: the re-rendered episodes would be read back "
+            f"as recordings of {raw} (re-rendered again by the next rerender, built along with them); write them "
+            f"beside it, e.g. --out {raw.resolve().parent / 'raw-three30'}",
+        ),
         (["--out", str(tmp_path / "rr"), "--size", "0"], "--size must be 16..4096 px, got 0"),  # was a traceback
         (["--out", str(tmp_path / "a-file")], f"--out {tmp_path / 'a-file'}: not a directory"),
         (["--out", str(sim_dataset)], f"--out {sim_dataset} is a dataset: choose another folder"),
