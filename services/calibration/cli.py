@@ -177,6 +177,15 @@ def _calibrate_rig(args: argparse.Namespace) -> int:
         out = Path(args.out)
         if not out.parent.is_dir():
             raise CalibrationError(f"--out {out}: directory {out.parent} does not exist")
+        # checked before the cameras are calibrated (before: after, or never: camera.rig cannot load a
+        # rig file without a .yaml suffix, it is taken for a preset's name)
+        if out.is_dir():
+            raise CalibrationError(f"--out {out} is a directory: name the rig file, e.g. {out / 'rig.yaml'}")
+        if out.suffix not in (".yaml", ".yml"):
+            raise CalibrationError(
+                f"--out {out}: a rig file is YAML, and camera.rig loads it by its .yaml suffix: "
+                f"--out {out.with_suffix('.yaml')}"
+            )
         results = []
         for name in names:
             c = calibrate_camera(name, root / name, board, board_pose=board_pose, gripper_poses=gripper)

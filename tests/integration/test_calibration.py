@@ -298,6 +298,13 @@ def test_cli_refuses_bad_input_with_one_error_line(rendered, tmp_path, capsys):
             ["--images", str(rendered), "--cameras", "F", "--max-error-px", "0.01"],
             r"^error: camera F: reprojection error 0\.\d+ px .* above the 0\.01 px threshold; nothing written",
         ),
+        # refused before any camera is calibrated (before: a folder failed after them all; a file without
+        # .yaml was written, and camera.rig took its path for an unknown preset's name)
+        (["--images", str(empty), "--out", str(tmp_path)], r"^error: --out .* is a directory: name the rig file"),
+        (
+            ["--images", str(empty), "--out", str(tmp_path / "lab")],
+            r"^error: --out .*/lab: a rig file is YAML, and camera.rig loads it by its .yaml suffix: .*/lab\.yaml$",
+        ),
     ]
     for extra, pattern in cases:
         code = viewscale(base + extra)
