@@ -424,9 +424,16 @@ def load_rig(name_or_path: str, task: str | None = None) -> Rig:
     """A preset name (``five15``) or a path to a rig YAML, framed for ``task`` if one is given."""
     path = Path(name_or_path)
     if not path.suffix:
-        path = RIG_DIR / f"{name_or_path}.yaml"
+        # a preset's name, or a rig file's path without its suffix: deploy/lab for deploy/lab.yaml
+        # (before, only an absolute one was found)
+        is_path = "/" in name_or_path
+        path = Path(f"{name_or_path}.yaml") if is_path else RIG_DIR / f"{name_or_path}.yaml"
         if not path.is_file():
-            raise ConfigError(f"unknown rig {name_or_path!r}; presets: {', '.join(available_rigs())}")
+            raise ConfigError(
+                f"no rig file {path}"
+                if is_path
+                else f"unknown rig {name_or_path!r}; presets: {', '.join(available_rigs())}"
+            )
     data = read_yaml(path)
     data.setdefault("name", path.stem)
     try:

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from services.core.config import ConfigError
-from services.core.rig import Camera, available_rigs, load_rig
+from services.core.rig import RIG_DIR, Camera, available_rigs, load_rig
 
 
 def test_presets_exist():
@@ -66,13 +66,24 @@ def test_mujoco_axes_flip_y_and_z():
     assert np.allclose(np.cross(x, y), -cam.R_wc[:, 2])  # MuJoCo looks down its -z
 
 
-def test_unknown_rig_names_the_presets(tmp_path):
+def test_unknown_rig_names_the_presets(tmp_path, monkeypatch):
     with pytest.raises(ConfigError, match="five15"):
         load_rig("six15")
     bad = tmp_path / "bad.yaml"
     bad.write_text("name: bad\ncameras: {}\n")
     with pytest.raises(ConfigError, match="bad.yaml"):
         load_rig(str(bad))
+    # a rig file's path without its suffix, relative or not (before: a relative one was "unknown rig")
+    good = tmp_path / "lab.yaml"
+    good.write_text((RIG_DIR / "three15.yaml").read_text())
+    assert load_rig(str(tmp_path / "lab")).names == load_rig("three15").names
+    monkeypatch.chdir(tmp_path)
+    assert load_rig("./lab").names == load_rig("three15").names
+    (tmp_path / "deploy").mkdir()
+    (tmp_path / "deploy" / "lab.yaml").write_text(good.read_text())
+    assert load_rig("deploy/lab").names == load_rig("three15").names
+    with pytest.raises(ConfigError, match=r"^no rig file deploy/other\.yaml$"):
+        load_rig("deploy/other")
 
 
 # -- framing: what the policy can see at 84 x 84 -------------------------------------------------
