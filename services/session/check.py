@@ -24,7 +24,7 @@ from services.calibration.check import check_rig
 from services.camera.config import CAMERA_DRIVERS, CameraConfig
 from services.core.clock import Rate, now_ns
 from services.core.config import ConfigError, load_config
-from services.core.rig import load_rig
+from services.core.rig import CameraSpec, Rig, RigSpec, load_rig
 from services.robot.config import ROBOT_DRIVERS, RobotConfig
 
 
@@ -53,9 +53,18 @@ def _describe_error(exc: BaseException) -> str:
     return " ".join(str(exc).split()) or type(exc).__name__
 
 
-def measure_cameras(cfg: CameraConfig, seconds: float) -> list[CameraReport]:
-    """Open the camera group the camera service would, grab at its rate for ``seconds``."""
-    driver = CAMERA_DRIVERS.build(cfg.driver, rig=load_rig(cfg.rig), width=cfg.width, height=cfg.height)
+def stand_in_rig(cfg: CameraConfig) -> Rig | None:
+    """A rig of the driver's camera names with placeholder poses, for measuring cameras whose rig
+    file is not written yet (before calibrating them); None for a driver that names no cameras."""
+    names = list(getattr(cfg.driver, "cameras", None) or [])
+    return Rig(RigSpec(name="uncalibrated", cameras={n: CameraSpec() for n in names})) if names else None
+
+
+def measure_cameras(cfg: CameraConfig, seconds: float, rig: Rig | None = None) -> list[CameraReport]:
+    """Open the camera group the camera service would, grab at its rate for ``seconds`` (``rig``:
+    instead of ``cfg.rig``)."""
+    rig = rig if rig is not None else load_rig(cfg.rig)
+    driver = CAMERA_DRIVERS.build(cfg.driver, rig=rig, width=cfg.width, height=cfg.height)
     try:
         names = list(driver.cameras)
         driver.grab(now_ns())  # the first grab may set things up (a render context, a stream's first key frame)
@@ -192,6 +201,7 @@ def run_check(
     sizes: dict[str, tuple[int, int]] | None = None
     if parts & {"cameras", "calibration"}:
         cam_cfg = load_config(CameraConfig, config, overrides.get("camera", []), section="camera")
+        rig = None
         try:
             load_rig(cam_cfg.rig)  # both parts need it: say once what is wrong with it
         except ConfigError as exc:
@@ -202,10 +212,15 @@ def run_check(
                     f"camera.rig {cam_cfg.rig!r}: {_describe_error(exc)} (write one with `viewscale calibrate rig`)",
                 )
             )
-            parts -= {"cameras", "calibration"}
+            parts.discard("calibration")
+            # cameras are checked before they are calibrated too (before: left out without a line)
+            rig = stand_in_rig(cam_cfg)
+            if rig is None and "cameras" in parts:
+                findings.append(Finding("cameras", False, f"{cam_cfg.driver.type}: not checked: they need camera.rig"))
+                parts.discard("cameras")
         if "cameras" in parts:
             try:
-                reports = measure_cameras(cam_cfg, seconds)
+                reports = measure_cameras(cam_cfg, seconds, rig)
             except Exception as exc:  # noqa: BLE001  (a driver that cannot open is the finding)
                 findings.append(Finding("cameras", False, f"{cam_cfg.driver.type}: {_describe_error(exc)}"))
             else:

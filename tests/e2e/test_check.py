@@ -85,7 +85,7 @@ def test_bad_arguments_are_one_error_line(tmp_path):
         "check", "--config", str(sim_config(tmp_path, rig=str(tmp_path / "lab.yaml"))), "--only", "cameras,calibration"
     )
     assert proc.returncode == 1, proc.stdout + proc.stderr
-    [line] = [ln for ln in proc.stdout.splitlines() if ln.startswith("FAIL")]
+    [line] = [ln for ln in proc.stdout.splitlines() if ln.startswith("FAIL  calibration")]
     assert "lab.yaml" in line and "does not exist" in line and "viewscale calibrate rig" in line, line
 
 
@@ -98,3 +98,29 @@ def test_a_camera_below_its_rate_fails_and_one_that_delivers_nothing_says_so():
     assert not f_slow.ok and "20.0 fps of 30 asked" in f_slow.text and "device 640x480, resized" in f_slow.text
     assert f_fine.ok and "exposure 156" in f_fine.text
     assert not f_dead.ok and "no frame" in f_dead.text
+
+
+def test_cameras_are_checked_before_their_rig_file_is_written(tmp_path):
+    """Step 2 of a lab's set-up: cameras mounted, not calibrated yet (before: with no rig file, the
+    cameras were left out without a line)."""
+    import cv2
+    import numpy as np
+
+    video = tmp_path / "F.avi"
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 10.0, (160, 120))
+    for n in range(60):
+        writer.write(np.full((120, 160, 3), 4 * n, np.uint8))
+    writer.release()
+    cfg = sim_config(
+        tmp_path, rig=str(tmp_path / "lab.yaml"), driver={"type": "opencv", "cameras": {"F": {"source": str(video)}}}
+    )
+    proc = viewscale("check", "--config", str(cfg), "--seconds", "1", "--only", "cameras,calibration")
+    assert proc.returncode == 1, proc.stdout + proc.stderr
+    lines = proc.stdout.splitlines()
+    assert [ln.split()[:3] for ln in lines[:2]] == [["FAIL", "calibration", "camera.rig"], ["ok", "camera", "F"]], lines
+    assert "160x120" in lines[1] or "64x64" in lines[1], lines[1]
+    # a driver that names no cameras (the sim's) cannot be opened without its rig: said, not skipped
+    proc = viewscale(
+        "check", "--config", str(sim_config(tmp_path, rig=str(tmp_path / "lab.yaml"))), "--only", "cameras,calibration"
+    )
+    assert proc.returncode == 1 and "FAIL  cameras        sim: not checked: they need camera.rig" in proc.stdout
