@@ -420,6 +420,12 @@ def available_rigs() -> list[str]:
     return sorted(p.stem for p in RIG_DIR.glob("*.yaml"))
 
 
+def placeholder_rig(names: list[str]) -> Rig:
+    """A rig of these camera names at placeholder poses: for opening cameras before their rig file
+    is written (``viewscale check``, ``viewscale calibrate capture``); never for recording."""
+    return Rig(RigSpec(name="uncalibrated", cameras={n: CameraSpec() for n in names}))
+
+
 def load_rig(name_or_path: str, task: str | None = None) -> Rig:
     """A preset name (``five15``) or a path to a rig YAML, framed for ``task`` if one is given."""
     path = Path(name_or_path)

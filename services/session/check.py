@@ -24,7 +24,7 @@ from services.calibration.check import check_rig
 from services.camera.config import CAMERA_DRIVERS, CameraConfig
 from services.core.clock import Rate, now_ns
 from services.core.config import ConfigError, load_config
-from services.core.rig import CameraSpec, Rig, RigSpec, load_rig
+from services.core.rig import Rig, load_rig, placeholder_rig
 from services.robot.config import ROBOT_DRIVERS, RobotConfig
 
 
@@ -54,10 +54,10 @@ def _describe_error(exc: BaseException) -> str:
 
 
 def stand_in_rig(cfg: CameraConfig) -> Rig | None:
-    """A rig of the driver's camera names with placeholder poses, for measuring cameras whose rig
+    """A rig of the driver's camera names with placeholder poses, for opening cameras whose rig
     file is not written yet (before calibrating them); None for a driver that names no cameras."""
     names = list(getattr(cfg.driver, "cameras", None) or [])
-    return Rig(RigSpec(name="uncalibrated", cameras={n: CameraSpec() for n in names})) if names else None
+    return placeholder_rig(names) if names else None
 
 
 def measure_cameras(cfg: CameraConfig, seconds: float, rig: Rig | None = None) -> list[CameraReport]:
@@ -205,13 +205,9 @@ def run_check(
         try:
             load_rig(cam_cfg.rig)  # both parts need it: say once what is wrong with it
         except ConfigError as exc:
-            findings.append(
-                Finding(
-                    "calibration",
-                    False,
-                    f"camera.rig {cam_cfg.rig!r}: {_describe_error(exc)} (write one with `viewscale calibrate rig`)",
-                )
-            )
+            if "calibration" in parts:  # (--only cameras: before the rig file is written, not a failure)
+                why = f"camera.rig {cam_cfg.rig!r}: {_describe_error(exc)}"
+                findings.append(Finding("calibration", False, f"{why} (write one with `viewscale calibrate rig`)"))
             parts.discard("calibration")
             # cameras are checked before they are calibrated too (before: left out without a line)
             rig = stand_in_rig(cam_cfg)

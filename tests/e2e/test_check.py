@@ -119,6 +119,9 @@ def test_cameras_are_checked_before_their_rig_file_is_written(tmp_path):
     lines = proc.stdout.splitlines()
     assert [ln.split()[:3] for ln in lines[:2]] == [["FAIL", "calibration", "camera.rig"], ["ok", "camera", "F"]], lines
     assert "160x120" in lines[1] or "64x64" in lines[1], lines[1]
+    proc = viewscale("check", "--config", str(cfg), "--seconds", "1", "--only", "cameras")
+    assert proc.returncode == 0, proc.stdout + proc.stderr  # what was asked for passes
+    assert proc.stdout.splitlines()[-1] == "1 ok, 0 failed"
     # a driver that names no cameras (the sim's) cannot be opened without its rig: said, not skipped
     proc = viewscale(
         "check", "--config", str(sim_config(tmp_path, rig=str(tmp_path / "lab.yaml"))), "--only", "cameras,calibration"
