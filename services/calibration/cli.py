@@ -3,6 +3,7 @@
     viewscale calibrate board --out board.png
     viewscale calibrate rig --images data/calib --board-pose board_pose.yaml --out deploy/rig.yaml
     viewscale calibrate rig --images data/calib --gripper-poses poses.yaml --out deploy/rig.yaml
+    viewscale calibrate capture --config deploy/real.yaml --images data/calib --kind intrinsics
 
 ``--images`` holds one folder per camera, named as the camera::
 
@@ -206,6 +207,45 @@ def _calibrate_rig(args: argparse.Namespace) -> int:
     return 0
 
 
+def _capture(args: argparse.Namespace) -> int:
+    import os
+
+    os.environ.setdefault("MUJOCO_GL", "egl")  # a sim rig renders headless, as the camera service does
+    from services.calibration.capture import Capture, next_command, run_capture
+
+    overrides: dict[str, list[str]] = {}
+    for item in args.set:
+        service, _, rest = item.partition(".")
+        if service not in ("camera", "robot") or not rest:
+            return _err(f"--set {item!r} must look like camera.KEY=VALUE or robot.KEY=VALUE")
+        overrides.setdefault(service, []).append(rest)
+    if args.count is not None and args.count < 1:
+        return _err(f"--count must be at least 1, got {args.count}")
+    if not 0 <= args.every < float("inf"):
+        return _err(f"--every must be 0 or more seconds, got {args.every:g}")
+    try:
+        board = _board(args)
+        with Capture(args.config, Path(args.images), args.kind, board, overrides) as cap:
+            shots = run_capture(cap, args.count, args.every, say=lambda m: print(m, flush=True))
+    except (CalibrationError, ConfigError) as exc:
+        return _err(str(exc))
+    except KeyboardInterrupt:
+        print("interrupted: the shots taken are kept", file=sys.stderr)
+        return 130
+    except Exception as exc:  # noqa: BLE001  (a driver that cannot open: its reason, not a traceback)
+        return _err(f"cannot open the {args.kind} capture: {type(exc).__name__}: {exc}")
+    if not shots:
+        print("no shot taken")
+        return 1 if args.count else 0
+    seen = {n: sum(1 for s in shots if s.corners[n]) for n in shots[0].corners}
+    print(
+        f"{len(shots)} shots of {args.kind}; with the board: "
+        + ", ".join(f"{n} {k}" for n, k in seen.items())
+        + f"\nnext, with every kind taken: {next_command(Path(args.images), args.kind)}"
+    )
+    return 0
+
+
 def _board_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--squares", default="7x5", help="squares along x and y of the board (default 7x5)")
     p.add_argument("--square-length", type=float, default=0.04, help="printed square side in m (default 0.04)")
@@ -245,3 +285,22 @@ def add_calibrate_command(subparsers: argparse._SubParsersAction) -> None:
     )
     _board_options(r)
     r.set_defaults(func=_calibrate_rig)
+
+    from services.calibration import capture
+
+    c = sub.add_parser(
+        "capture",
+        help="take the images `calibrate rig` reads, from every camera of a session file at once",
+        description=(capture.__doc__ or "").split("\n\n", 1)[1],
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    c.add_argument("--config", required=True, help="the session's YAML (e.g. deploy/real.yaml)")
+    c.add_argument("--images", required=True, help="the folder `calibrate rig --images` reads (e.g. data/calib)")
+    c.add_argument("--kind", required=True, choices=capture.KINDS, help="which images (see above)")
+    c.add_argument("--count", type=int, default=None, help="take this many shots, hands-free (default: one per Enter)")
+    c.add_argument("--every", type=float, default=2.0, help="seconds between --count shots (default 2)")
+    c.add_argument(
+        "--set", action="append", default=[], metavar="SERVICE.KEY=VALUE", help="override, e.g. camera.width=1280"
+    )
+    _board_options(c)
+    c.set_defaults(func=_capture)
