@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from services.core.config import ConfigError
 from services.core.robot_types import EefDelta
 from services.pb.sensors_pb2 import RobotState, TaskState
 from services.policy.client import ChunkRunner, PolicyClient, PolicyError, State
@@ -34,19 +35,26 @@ log = logging.getLogger(__name__)
 class PolicyTeleop(TeleopDriver):
     def __init__(self, cfg: PolicyTeleopConfig):
         self.cfg = cfg
-        self.client = PolicyClient(
-            cfg.server,
-            session_id=f"teleop-{id(self):x}",
-            token=cfg.token,
-            timeout_s=cfg.timeout_s,
-            connect_timeout_s=cfg.connect_timeout_s,
-        )
+        try:  # (the service's one error line, as a camera or arm that cannot be reached; before: a traceback)
+            self.client = PolicyClient(
+                cfg.server,
+                session_id=f"teleop-{id(self):x}",
+                token=cfg.token,
+                timeout_s=cfg.timeout_s,
+                connect_timeout_s=cfg.connect_timeout_s,
+            )
+        except PolicyError as exc:
+            raise ConnectionError(f"teleop driver policy: {exc}") from None
         info = self.client.info
         self.cameras = tuple(cfg.views or info.default_views)
         known = {c.name for c in info.cameras}
         unknown = [c for c in self.cameras if c not in known]
         if unknown:
-            raise ValueError(f"the policy server knows no camera {', '.join(unknown)} ({', '.join(sorted(known))})")
+            self.client.close()
+            raise ConfigError(
+                f"teleop driver policy: views {', '.join(unknown)}: the policy server at {cfg.server} knows no such "
+                f"camera ({', '.join(sorted(known))})"
+            )
         self.runner: ChunkRunner | None = None
         self.episode_id = ""
         self.first_error: str | None = None

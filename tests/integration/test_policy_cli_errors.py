@@ -393,3 +393,29 @@ def test_the_client_refuses_settings_out_of_range_before_connecting(kw, says):
 
     with pytest.raises(ValueError, match=re.escape(says)):
         PolicyClient(f"127.0.0.1:{free_tcp_port()}", **kw)
+
+
+def test_a_policy_teleop_it_cannot_use_is_one_line(tiny_checkpoint):
+    """`teleop: {driver: {type: policy, ...}}` (README step 7): a view the server lacks, or no server
+    there, stops the teleop service with one error line, as a camera or arm it cannot open (before:
+    a ValueError or PolicyError traceback)."""
+    server, address = start_server(tiny_checkpoint, "--in-process")
+    try:
+        cases = [
+            (address, "[F, XX]", f"views XX: the policy server at {address} knows no such camera"),
+            (f"127.0.0.1:{free_tcp_port()}", "[F]", "no policy server at 127.0.0.1:"),
+        ]
+        for at, views, says in cases:
+            proc = subprocess.run(
+                [sys.executable, "-m", "services.teleop", "--set"]
+                + [f"driver={{type: policy, server: '{at}', views: {views}, connect_timeout_s: 1}}"],
+                cwd=ROOT,
+                capture_output=True,
+                text=True,
+                timeout=60,
+            )
+            assert proc.returncode == 2, proc.stderr
+            assert proc.stderr.startswith("error: teleop driver policy: ") and says in proc.stderr, proc.stderr
+            no_traceback(proc.stderr)
+    finally:
+        stop(server)
