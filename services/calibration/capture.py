@@ -4,14 +4,18 @@
     viewscale calibrate capture --config deploy/real.yaml --images data/calib --kind board
     viewscale calibrate capture --config deploy/real.yaml --images data/calib --kind hand_eye
 
-The cameras (and, for ``hand_eye``, the robot) are opened through the same drivers as the
-services, from the session file, before the camera service runs (it would hold the devices). A shot
-saves, for every camera, its first frame captured after the shot was asked for, as
-``<images>/<camera>/<kind>/<NNN>.png`` (lossless), and says how many board corners each holds.
-``hand_eye`` also reads the arm's EEF pose before and after the frames (a shot while the arm moves
-is refused) and writes it under the key ``NNN`` to ``<images>/hand_eye_poses.yaml``, the
-``--gripper-poses`` file of ``calibrate rig``. Shot numbers go on from the images already there: a
+The cameras are opened through the same drivers as the services, from the session file, with the
+camera service not running (it would hold the devices). A shot saves, for every camera, its first
+frame captured after the shot was asked for, as ``<images>/<camera>/<kind>/<NNN>.png`` (lossless),
+and says how many board corners each holds. Shot numbers go on from the images already there: a
 second session adds shots, it never replaces one.
+
+``hand_eye`` takes the arm's EEF pose from ``robot/state`` on the session's bus: run the router, the
+robot service and a teleop (the SpaceMouse, to move the arm between shots) with the same session
+file, as for a collection. The arm stays the robot service's, behind its safety layer; this command
+never connects to it. The pose is read before and after the frames (a shot while the arm moves is
+refused) and written under the key ``NNN`` to ``<images>/hand_eye_poses.yaml``, the
+``--gripper-poses`` file of ``calibrate rig``.
 
 Interactive: Enter takes a shot, ``q`` and Enter (or Ctrl-D) ends. ``--count N --every S``: N shots
 S seconds apart, hands-free while someone moves the board. Frames are taken at
@@ -24,6 +28,7 @@ from __future__ import annotations
 
 import os
 import sys
+import threading
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -36,15 +41,19 @@ import yaml
 from services.calibration.charuco import BoardSpec, CalibrationError, detect
 from services.camera.base import Frame
 from services.camera.config import CAMERA_DRIVERS, CameraConfig
+from services.core import topics
+from services.core.bus import Bus
 from services.core.clock import now_ns
 from services.core.config import ConfigError, load_config
 from services.core.geometry import quat_wxyz_to_matrix
 from services.core.rig import load_rig, placeholder_rig
-from services.robot.config import ROBOT_DRIVERS, RobotConfig
+from services.pb.sensors_pb2 import RobotState
+from services.robot.config import RobotConfig
 
 KINDS = ("intrinsics", "board", "hand_eye")
 POSES_FILE = "hand_eye_poses.yaml"
 FRAME_TIMEOUT_S = 5.0  # how long a shot waits for every camera's next frame
+STATE_TIMEOUT_S = 5.0  # how long a hand-eye shot waits for a robot state newer than its frames
 STILL_MM = 1.0  # the arm moved during a hand-eye shot when its EEF moved more than this...
 STILL_DEG = 0.2  # ...or turned more than this
 
@@ -117,8 +126,32 @@ def _moved(a, b) -> str | None:
     return None
 
 
+class ArmPoses:
+    """The newest ``robot/state`` on the bus, as the robot service publishes it."""
+
+    def __init__(self, bus: Bus):
+        self._cond = threading.Condition()
+        self._latest: tuple[int, RobotState] | None = None  # (receive ns, state)
+        bus.subscribe(topics.ROBOT_STATE, self._on_state)
+
+    def _on_state(self, msg: RobotState, rx) -> None:
+        with self._cond:
+            self._latest = (rx.receive_ns, msg)
+            self._cond.notify_all()
+
+    def after(self, t_ns: int, timeout_s: float = STATE_TIMEOUT_S) -> RobotState:
+        """The first state received at or after ``t_ns``."""
+        with self._cond:
+            if not self._cond.wait_for(lambda: self._latest is not None and self._latest[0] >= t_ns, timeout_s):
+                raise CalibrationError(
+                    f"no robot/state on the bus within {timeout_s:g} s: run the router and the robot service "
+                    "with this session file (hand_eye reads the arm's pose from it)"
+                )
+            return self._latest[1]
+
+
 class Capture:
-    """The open cameras (and robot) of one capture session."""
+    """The open cameras (and, for hand_eye, the bus) of one capture session."""
 
     def __init__(
         self,
@@ -132,6 +165,7 @@ class Capture:
             raise CalibrationError(f"--kind {kind!r}: choose from {', '.join(KINDS)}")
         overrides = overrides or {}
         self.images, self.kind, self.board = Path(images), kind, board
+        self.cameras = self.bus = self.arm = None
         if self.images.exists() and not self.images.is_dir():
             raise CalibrationError(f"--images {self.images} is a file: name a folder")
         cam_cfg = load_config(CameraConfig, config, overrides.get("camera", []), section="camera")
@@ -147,10 +181,15 @@ class Capture:
             rig = placeholder_rig(names)
         self.poses_path = self.images / POSES_FILE
         self.poses = read_poses(self.poses_path) if kind == "hand_eye" else {}
-        self.robot = None
-        if kind == "hand_eye":
+        if kind == "hand_eye":  # the robot service's bus: where its robot/state goes
             robot_cfg = load_config(RobotConfig, config, overrides.get("robot", []), section="robot")
-            self.robot = ROBOT_DRIVERS.build(robot_cfg.driver, control_hz=robot_cfg.control_hz)
+            self.bus = Bus(robot_cfg.bus)
+            self.arm = ArmPoses(self.bus)
+            try:
+                self.arm.after(0)  # is the robot service there? (before any camera is opened)
+            except BaseException:
+                self.close()
+                raise
         try:
             self.cameras = CAMERA_DRIVERS.build(cam_cfg.driver, rig=rig, width=cam_cfg.width, height=cam_cfg.height)
         except BaseException:
@@ -161,10 +200,11 @@ class Capture:
 
     def shot(self) -> Shot:
         """Take one shot: a new frame of every camera (and the arm's pose), saved."""
-        before = self.robot.read() if self.robot is not None else None
+        t0 = now_ns()
+        before = self.arm.after(t0) if self.arm is not None else None
         frames = _fresh_frames(self.cameras, now_ns(), FRAME_TIMEOUT_S)
-        if self.robot is not None:
-            after = self.robot.read()
+        if self.arm is not None:
+            after = self.arm.after(max(f.stamp_ns for f in frames.values()))
             moved = _moved(before, after)
             if moved:
                 raise CalibrationError(moved)
@@ -178,7 +218,7 @@ class Capture:
             paths[name] = folder / f"{key}.png"
             if not cv2.imwrite(str(paths[name]), bgr):
                 raise CalibrationError(f"cannot write {paths[name]}")
-        if self.robot is not None:
+        if self.arm is not None:
             self.poses[key] = {
                 "position": [round(float(v), 6) for v in before.eef_pos],
                 "quat_wxyz": [round(float(v), 7) for v in before.eef_quat_wxyz],
@@ -193,15 +233,15 @@ class Capture:
         )
         where = self.images / "*" / self.kind / f"{shot.key}.png"
         pose = ""
-        if self.robot is not None:
+        if self.arm is not None:
             pose = f", EEF at ({', '.join(f'{v:.3f}' for v in self.poses[shot.key]['position'])}) m"
         return f"[{shot.key}] {seen}{pose} -> {where}"
 
     def close(self) -> None:
-        for part in ("cameras", "robot"):
-            driver = getattr(self, part, None)
-            if driver is not None:
-                driver.close()
+        if self.cameras is not None:
+            self.cameras.close()
+        if self.bus is not None:
+            self.bus.close()
 
     def __enter__(self) -> Capture:
         return self

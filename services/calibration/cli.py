@@ -227,7 +227,7 @@ def _capture(args: argparse.Namespace) -> int:
         board = _board(args)
         with Capture(args.config, Path(args.images), args.kind, board, overrides) as cap:
             shots = run_capture(cap, args.count, args.every, say=lambda m: print(m, flush=True))
-    except (CalibrationError, ConfigError) as exc:
+    except (CalibrationError, ConfigError, ConnectionError) as exc:  # (a router not there)
         return _err(str(exc))
     except KeyboardInterrupt:
         print("interrupted: the shots taken are kept", file=sys.stderr)

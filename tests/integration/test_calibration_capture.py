@@ -1,6 +1,7 @@
 """`viewscale calibrate capture` through the real drivers: an OpenCV camera reading a video of a
-printed ChArUco board (a recording stands in for the camera) and the sim arm, before any rig file
-exists; the images and poses it writes are what `calibrate rig` reads."""
+printed ChArUco board (a recording stands in for the camera), before any rig file exists; for
+hand-eye shots, the robot service (sim arm) publishing robot/state on a real router. The images
+and poses it writes are what `calibrate rig` reads."""
 
 from __future__ import annotations
 
@@ -16,13 +17,14 @@ import yaml
 from services.calibration.charuco import BoardSpec
 from services.calibration.cli import read_gripper_poses
 from services.cli import main as viewscale
+from services.core.runtime import child_env
 
 ROOT = Path(__file__).resolve().parents[2]
 BOARD = BoardSpec()  # the default board: 7x5, 24 corners
 
 
-@pytest.fixture(scope="module")
-def session(tmp_path_factory) -> Path:
+@pytest.fixture
+def session(tmp_path_factory, zenoh_endpoint) -> Path:
     """A session file: camera F plays a board video, the arm is the sim's, camera.rig not written yet."""
     d = tmp_path_factory.mktemp("capture")
     board = BOARD.image(px_per_square=60)  # (H, W) grey
@@ -36,6 +38,7 @@ def session(tmp_path_factory) -> Path:
     writer.release()
     cfg = {
         "world": "sim",
+        "bus": {"mode": "client", "connect": [zenoh_endpoint]},
         "camera": {
             "driver": {"type": "opencv", "cameras": {"F": {"source": str(video)}}},
             "rig": str(d / "lab.yaml"),
@@ -53,6 +56,27 @@ def session(tmp_path_factory) -> Path:
 def test_hand_eye_shots_save_every_camera_and_the_arm_pose_and_add_up(session, tmp_path, capsys):
     images = tmp_path / "calib"
     args = ["calibrate", "capture", "--config", str(session), "--images", str(images), "--kind", "hand_eye"]
+    # no robot service publishing yet: refused before any camera is opened, nothing written
+    assert viewscale([*args, "--count", "1"]) == 2
+    assert "no robot/state on the bus within 5 s: run the router and the robot service" in capsys.readouterr().err
+    assert not images.exists()
+    robot = subprocess.Popen(
+        [sys.executable, "-m", "services.robot", "--config", str(session)],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.DEVNULL,
+        text=True,
+        env=child_env(),
+    )
+    try:
+        assert robot.stdout.readline().startswith("ready robot")
+        _hand_eye_shots(images, args, capsys)
+    finally:
+        robot.terminate()
+        robot.wait(timeout=20)
+
+
+def _hand_eye_shots(images: Path, args: list[str], capsys) -> None:
     assert viewscale([*args, "--count", "2", "--every", "0"]) == 0
     out = capsys.readouterr().out
     assert "[000] F 24/24 corners, EEF at (0.450, 0.000, 0.250) m" in out, out
