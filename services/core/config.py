@@ -8,6 +8,7 @@ and CLI are parsed as YAML scalars/flow values, so ``--set bus.connect=[tcp/127.
 
 from __future__ import annotations
 
+import difflib
 import os
 from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
@@ -144,11 +145,45 @@ def validate_config(
     try:
         return model.model_validate(data)
     except ValidationError as exc:
-        raise ConfigError(f"invalid {model.__name__} config{source}: {describe_errors(exc)}") from exc
+        raise ConfigError(f"invalid {model.__name__} config{source}: {describe_errors(exc, model)}") from exc
 
 
-def describe_errors(exc: ValidationError) -> str:
-    """pydantic's errors on one line: ``field.path: message (got value)``, joined by ``; ``."""
+def setting_paths(model: type[BaseModel], prefix: str = "") -> list[str]:
+    """Every setting of ``model`` as a dotted path, nested models' settings included."""
+    paths = []
+    for name, field in model.model_fields.items():
+        kind = field.annotation
+        if isinstance(kind, type) and issubclass(kind, BaseModel):
+            paths += setting_paths(kind, f"{prefix}{name}.")
+        else:
+            paths.append(f"{prefix}{name}")
+    return paths
+
+
+def _unknown_setting(loc: str, model: type[BaseModel] | None) -> str:
+    """``no such setting``, with the settings it may have meant: the same name elsewhere (``lr`` for
+    ``optim.lr``), or a close spelling."""
+    if model is None:
+        return "no such setting"
+    known = setting_paths(model)
+    leaf = loc.rsplit(".", 1)[-1]
+    near = [p for p in known if p.rsplit(".", 1)[-1] == leaf]
+    if not near:
+        alike = set(difflib.get_close_matches(leaf, [p.rsplit(".", 1)[-1] for p in known], n=3, cutoff=0.75))
+        near = [p for p in known if p.rsplit(".", 1)[-1] in alike]
+    if near:
+        return f"no such setting (did you mean {' or '.join(near[:3])}?)"
+    parent = loc.rsplit(".", 1)[0] if "." in loc else ""
+    siblings = [p.rsplit(".", 1)[-1] for p in known if p.startswith(f"{parent}.") and p.count(".") == loc.count(".")]
+    if parent and 0 < len(siblings) <= 12:  # (a section's own settings, when they are few enough to read)
+        return f"no such setting ({parent} has {', '.join(siblings)})"
+    return "no such setting"
+
+
+def describe_errors(exc: ValidationError, model: type[BaseModel] | None = None) -> str:
+    """pydantic's errors on one line: ``field.path: message (got value)``, joined by ``; ``. With
+    ``model``, an unknown setting names the settings it may have meant (before: pydantic's
+    'Extra inputs are not permitted')."""
     parts = []
     for e in exc.errors():
         loc = ".".join(str(p) for p in e["loc"] if p not in ("external",))
@@ -156,6 +191,8 @@ def describe_errors(exc: ValidationError) -> str:
         shown = "" if isinstance(got, dict) or got is None else f" (got {str(got)[:60]!r})"
         # our validators' own words, without pydantic's 'Value error, ' before them
         msg = str(e["ctx"]["error"]) if e["type"] == "value_error" and "error" in e.get("ctx", {}) else e["msg"]
+        if e["type"] == "extra_forbidden":
+            msg = _unknown_setting(loc, model)
         parts.append(f"{loc}: {msg}{shown}" if loc else f"{msg}{shown}")  # (no loc: a check across fields)
     return "; ".join(parts)
 

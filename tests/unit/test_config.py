@@ -39,6 +39,16 @@ def test_flow_values_parse():
 def test_unknown_field_is_an_error_naming_it(tmp_path):
     with pytest.raises(ConfigError, match="rat"):
         load_config(Model, None, ["rat=3"], environ={})
+    # it names what was meant: the same name in its section, or a close spelling (before: pydantic's
+    # "Extra inputs are not permitted", for `--set lr=...` when the setting is optim.lr)
+    with pytest.raises(ConfigError, match=r"rat: no such setting \(did you mean rate\?\) \(got '3'\)$"):
+        load_config(Model, None, ["rat=3"], environ={})
+    with pytest.raises(ConfigError, match=r"^invalid Model config: a: no such setting \(did you mean inner.a\?\)"):
+        load_config(Model, None, ["a=3"], environ={})
+    with pytest.raises(ConfigError, match=r"inner.zzz: no such setting \(inner has a, b\) \(got '3'\)$"):
+        load_config(Model, None, ["inner.zzz=3"], environ={})
+    with pytest.raises(ConfigError, match=r"zzz: no such setting \(got '3'\)$"):
+        load_config(Model, None, ["zzz=3"], environ={})
 
 
 def test_bad_override_and_missing_file(tmp_path):
