@@ -322,6 +322,10 @@ def evaluate(spec: EvalSpec, out: Path, progress: Callable[[str], None] = print)
     _check_numbers(spec)
     if spec.expert and (spec.checkpoint or spec.server):
         raise EvalError("--expert evaluates the scripted expert: leave out --checkpoint and --server")
+    if spec.expert and (spec.views or spec.workers):  # (before: taken, unchecked, and meaning nothing)
+        raise EvalError(
+            "--views and --workers are the policy's: not with --expert (--video-camera picks the videos' camera)"
+        )
     facts = None
     if not spec.expert:
         if spec.server:

@@ -135,6 +135,8 @@ def test_eval_refuses_bad_input_with_one_line_before_starting_anything(tiny_chec
         ([*ck, "--size", "5"], "--size must be 16..4096, got 5"),
         ([*ck, "--workers", "-2"], "--workers must be at least 0, got -2"),
         ([*ck, "--expert"], "--expert evaluates the scripted expert: leave out --checkpoint and --server"),
+        (["--expert", "--views", "F,XX"], "--views and --workers are the policy's: not with --expert"),
+        (["--expert", "--workers", "2"], "--views and --workers are the policy's: not with --expert"),
         (["--checkpoint", str(tmp_path / "none")], f"checkpoint {tmp_path / 'none'} does not exist"),
         ([*ck, "--out", str(note)], f"--out {note}: not a directory"),
         # another command's output: a report and rollouts in among its files (before: exit 0, they were)
