@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 import os
+import shutil
 import subprocess
 import sys
 from datetime import datetime, timedelta, timezone
@@ -280,6 +281,34 @@ def test_cli_writes_a_rig_that_projects_like_the_true_cameras(rendered, tmp_path
         back, K = Camera.from_msgs(msg, got.pose_msg(0))
         np.testing.assert_allclose(K, got.K(W, H))
         np.testing.assert_allclose(back.project(points, W, H), got.project(points, W, H), atol=1e-6)
+
+
+def test_a_board_shot_taken_by_capture_calibrates_the_camera_pose(rendered, tmp_path, capsys):
+    """`calibrate capture --kind board` through a real OpenCV camera (an MJPG recording of the
+    rendered board at its measured pose stands in for camera F), then `calibrate rig` on what it
+    saved: the pose within the same bounds as from the rendered PNGs. The intrinsics images are the
+    rendered ones, put where an earlier capture session would have saved them."""
+    img = cv2.imread(str(rendered / "F" / "board" / "000.png"))
+    video = tmp_path / "F-board.avi"
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 20.0, (W, H))
+    for _ in range(200):
+        writer.write(img)
+    writer.release()
+    calib = tmp_path / "calib"
+    shutil.copytree(rendered / "F" / "intrinsics", calib / "F" / "intrinsics")
+    session = tmp_path / "session.yaml"
+    camera = {"driver": {"type": "opencv", "cameras": {"F": {"source": str(video)}}}, "rig": str(tmp_path / "lab.yaml")}
+    session.write_text(yaml.safe_dump({"camera": camera | {"width": W, "height": H, "fps": 20.0}}))
+    capture = ["calibrate", "capture", "--config", str(session), "--images", str(calib), "--kind", "board"]
+    assert viewscale([*capture, "--count", "1", *BOARD_ARGS]) == 0
+    assert f"[000] F {BOARD.n_corners}/{BOARD.n_corners} corners" in capsys.readouterr().out
+    out = tmp_path / "lab.yaml"
+    rig_args = ["--images", str(calib), "--board-pose", str(rendered / "board_pose.yaml"), "--out", str(out)]
+    assert viewscale(["calibrate", "rig", *rig_args, *BOARD_ARGS]) == 0, capsys.readouterr().err
+    cam = load_rig(str(out)).cameras["F"]
+    dp, dr = _pose_errors(cam.position, cam.R_wc, CAMS["F"])
+    print(f"F from a captured board shot -> {dp:.2f} mm, {dr:.3f} deg")
+    assert dp < 2.0 and dr < 0.2
 
 
 def test_cli_refuses_bad_input_with_one_error_line(rendered, tmp_path, capsys):
