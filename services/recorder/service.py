@@ -34,6 +34,7 @@ from google.protobuf.message import Message
 
 from services.core.bus import Bus, Received
 from services.core.clock import now_ns
+from services.core.config import ConfigError
 from services.core.runtime import exclusive, serve, wait_for_stop
 from services.core.topics import (
     APPLIED_ACTION,
@@ -119,6 +120,13 @@ class Recorder:
 
     # -- lifecycle --------------------------------------------------------------------------
     def __enter__(self) -> Recorder:
+        # one recorder per bus: a second one answers every episode request too, and records every
+        # episode again into its own folder (before: both did, each reply from either one)
+        if self.name in self.bus.alive(timeout=2.0):
+            raise ConfigError(
+                f"another {self.name} is on this bus (namespace {self.bus.cfg.namespace!r}): it would record "
+                "every episode too, into its own folder; stop it, or give this session its own bus.namespace"
+            )
         self.out_dir.mkdir(parents=True, exist_ok=True)
         # one recorder per folder: a second one (another session on the same --out) would take
         # its episodes' ids, and flag the first one's open .part as left over from a crash
@@ -134,8 +142,9 @@ class Recorder:
         self.bus.subscribe_raw("**", self._on_sample)
         self.bus.queryable(EPISODE_CONTROL, self._on_control)
         self.bus.watch_alive(self._on_alive)
-        # Announce last: whoever sees the token can rely on the subscription being in place.
-        self.bus.announce(self.name)
+        # Announce last: whoever sees the token can rely on the subscription being in place. It
+        # goes when the recorder closes (not with the bus): the bus is free for another recorder.
+        self._held.callback(self.bus.presence(self.name).undeclare)
         return self
 
     def __exit__(self, *exc) -> None:

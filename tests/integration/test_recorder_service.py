@@ -499,15 +499,30 @@ def test_a_second_recorder_on_the_same_folder_is_refused(net, make_recorder, tmp
     from services.core.runtime import OutputError
 
     make_recorder()  # holds tmp_path / "episodes"
-    cfg = RecorderConfig(bus=net.bus_config(), out_dir=tmp_path / "episodes")
+    # (on a bus of its own: on the same bus, the bus check below refuses it first)
+    own_bus = net.bus_config().model_copy(update={"namespace": "second"})
+    cfg = RecorderConfig(bus=own_bus, out_dir=tmp_path / "episodes")
     with Bus(cfg.bus) as bus:
         with pytest.raises(OutputError, match=r"episodes is in use by another recorder \(pid \d+"):
             Recorder(cfg, bus).__enter__()
     # another folder is fine, and a folder whose recorder closed is free again, its lock file gone
-    other = RecorderConfig(bus=net.bus_config(), out_dir=tmp_path / "other")
+    other = RecorderConfig(bus=own_bus, out_dir=tmp_path / "other")
     with Bus(other.bus) as bus:
         with Recorder(other, bus):
             assert (tmp_path / "other" / LOCK_FILE).exists()
         assert not (tmp_path / "other" / LOCK_FILE).exists()
         with Recorder(other, bus):
             pass
+
+
+def test_a_second_recorder_on_the_same_bus_is_refused(net, make_recorder, tmp_path):
+    """(both answered every episode request and recorded every episode, each into its own folder:
+    `viewscale episode start` showed one's reply, `stop` the other's)"""
+    from services.core.config import ConfigError
+
+    make_recorder()
+    cfg = RecorderConfig(bus=net.bus_config(), out_dir=tmp_path / "elsewhere")
+    with Bus(cfg.bus) as bus:
+        with pytest.raises(ConfigError, match=r"^another recorder is on this bus \(namespace 'vs'\): it would record"):
+            Recorder(cfg, bus).__enter__()
+    assert not (tmp_path / "elsewhere").exists()  # refused before its folder is made
