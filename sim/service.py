@@ -25,7 +25,7 @@ from services.core import topics
 from services.core.bus import Bus
 from services.core.clock import Rate, now_ns
 from services.core.rig import load_rig
-from services.core.runtime import serve
+from services.core.runtime import refuse_rivals, serve
 from services.core.success import SuccessWatch
 from services.core.validation import Invalid, check_sim_request, decode_strict
 from services.pb.common_pb2 import Header
@@ -91,6 +91,7 @@ class SimService:
 
     # -- lifecycle ----------------------------------------------------------------------
     def __enter__(self) -> SimService:
+        refuse_rivals(self.bus, "sim", {"sim", "robot", "camera"})  # (before: a sim on a lab's bus was taken)
         self.cameras.publish_calibration(now_ns())
         self._calib_thread.start()
         self.bus.announce("sim")

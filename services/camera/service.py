@@ -23,7 +23,7 @@ from services.camera.publisher import CameraPublisher
 from services.core.bus import Bus
 from services.core.clock import Rate, now_ns
 from services.core.rig import load_rig
-from services.core.runtime import serve
+from services.core.runtime import refuse_rivals, serve
 
 log = logging.getLogger(__name__)
 
@@ -41,6 +41,8 @@ class CameraService:
         self._tokens: dict[str, object] = {}  # camera -> its liveliness token, held while it delivers
 
     def __enter__(self) -> CameraService:
+        # a sim publishes every camera; another camera service publishing one of these is a rival too
+        refuse_rivals(self.bus, "camera", {"sim"} | {f"camera/{n}" for n in self.driver.cameras})
         self.bus.announce("camera")
         self._update_presence()
         return self

@@ -15,7 +15,7 @@ import threading
 from collections.abc import Iterator
 from pathlib import Path
 
-from services.core.config import log_level_name
+from services.core.config import ConfigError, log_level_name
 
 LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"  # every service's lines, and the CLI's
 
@@ -87,6 +87,31 @@ def serve(name: str, bus_config, build, address: str) -> int:
         announce_ready(name, address)
         service.run(stop)
     return 0
+
+
+# What two services of a kind on one bus would both do (the reason a second one is refused).
+DOUBLED = {
+    "recorder": "record every episode, each into its own folder",
+    "robot": "publish robot/state and drive an arm",
+    "sim": "publish robot/state and camera frames",
+    "camera": "publish the same camera's frames",
+    "teleop": "send a command every tick",
+    "trainer": "take every TRAIN request",
+}
+
+
+def refuse_rivals(bus, me: str, rivals: set[str]) -> None:
+    """ConfigError when a service in ``rivals`` (liveliness names) is on ``bus`` already: a sim
+    started on a lab's session would publish its arm's state and frames in among the real ones, a
+    second recorder record every episode again. Checked before ``me`` publishes or announces."""
+    found = sorted(rivals & bus.alive(timeout=2.0))
+    if found:
+        rival = found[0]
+        who = f"another {me}" if rival == me else f"a {rival}" + (" service" if "/" not in rival else "")
+        raise ConfigError(
+            f"{who} is on this bus (namespace {bus.cfg.namespace!r}): both would {DOUBLED.get(me, 'run')}; "
+            "stop it, or give this session its own bus.namespace"
+        )
 
 
 PARENT_ENV = "VIEWSCALE_PARENT_PID"

@@ -34,8 +34,7 @@ from google.protobuf.message import Message
 
 from services.core.bus import Bus, Received
 from services.core.clock import now_ns
-from services.core.config import ConfigError
-from services.core.runtime import exclusive, serve, wait_for_stop
+from services.core.runtime import exclusive, refuse_rivals, serve, wait_for_stop
 from services.core.topics import (
     APPLIED_ACTION,
     EPISODE,
@@ -122,11 +121,7 @@ class Recorder:
     def __enter__(self) -> Recorder:
         # one recorder per bus: a second one answers every episode request too, and records every
         # episode again into its own folder (before: both did, each reply from either one)
-        if self.name in self.bus.alive(timeout=2.0):
-            raise ConfigError(
-                f"another {self.name} is on this bus (namespace {self.bus.cfg.namespace!r}): it would record "
-                "every episode too, into its own folder; stop it, or give this session its own bus.namespace"
-            )
+        refuse_rivals(self.bus, self.name, {self.name})
         self.out_dir.mkdir(parents=True, exist_ok=True)
         # one recorder per folder: a second one (another session on the same --out) would take
         # its episodes' ids, and flag the first one's open .part as left over from a crash

@@ -11,7 +11,7 @@ import logging
 import threading
 
 from services.core.bus import Bus
-from services.core.runtime import serve
+from services.core.runtime import refuse_rivals, serve
 from services.robot.base import RobotDriver
 from services.robot.config import ROBOT_DRIVERS, RobotConfig
 from services.robot.loop import ControlLoop
@@ -34,6 +34,7 @@ class RobotService:
         )
 
     def __enter__(self) -> RobotService:
+        refuse_rivals(self.bus, "robot", {"robot", "sim"})  # (before: both published robot/state)
         self.bus.announce("robot")
         return self
 

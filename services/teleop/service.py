@@ -21,7 +21,7 @@ from services.core import topics
 from services.core.bus import Bus, Received
 from services.core.clock import now_ns
 from services.core.robot_types import action_msg
-from services.core.runtime import serve
+from services.core.runtime import refuse_rivals, serve
 from services.core.validation import Invalid, check
 from services.pb.common_pb2 import Header
 from services.pb.control_pb2 import EefCommand
@@ -59,6 +59,7 @@ class TeleopService:
         driver.attach(bus)
 
     def __enter__(self) -> TeleopService:
+        refuse_rivals(self.bus, "teleop", {"teleop"})  # (before: both answered every tick)
         self.bus.announce("teleop")
         return self
 

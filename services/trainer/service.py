@@ -28,7 +28,7 @@ from typing import Any
 
 from services.core.bus import Bus
 from services.core.config import ConfigError, deep_merge, parse_overrides, read_yaml
-from services.core.runtime import OutputError, exclusive, output_dir, wait_for_stop
+from services.core.runtime import OutputError, exclusive, output_dir, refuse_rivals, wait_for_stop
 from services.core.topics import TRAIN_PROGRESS, TRAIN_REQUEST
 from services.dataset.store import DatasetError, DatasetStore
 from services.pb import trainer_pb2
@@ -69,6 +69,7 @@ class TrainerService:
 
     # -- lifecycle ------------------------------------------------------------------------------
     def __enter__(self) -> TrainerService:
+        refuse_rivals(self.bus, SERVICE_NAME, {SERVICE_NAME})  # (before: both queued every TRAIN request)
         self.bus.queryable(TRAIN_REQUEST, self._on_request)
         self._threads.append(threading.Thread(target=self._work, name="trainer-jobs", daemon=True))
         if self.cfg.jobs_dir:

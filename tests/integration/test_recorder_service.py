@@ -523,6 +523,8 @@ def test_a_second_recorder_on_the_same_bus_is_refused(net, make_recorder, tmp_pa
     make_recorder()
     cfg = RecorderConfig(bus=net.bus_config(), out_dir=tmp_path / "elsewhere")
     with Bus(cfg.bus) as bus:
-        with pytest.raises(ConfigError, match=r"^another recorder is on this bus \(namespace 'vs'\): it would record"):
+        with pytest.raises(
+            ConfigError, match=r"^another recorder is on this bus \(namespace 'vs'\): both would record every"
+        ):
             Recorder(cfg, bus).__enter__()
     assert not (tmp_path / "elsewhere").exists()  # refused before its folder is made
