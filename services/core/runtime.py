@@ -89,14 +89,16 @@ def serve(name: str, bus_config, build, address: str) -> int:
     return 0
 
 
-# What two services of a kind on one bus would both do (the reason a second one is refused).
+# What two services on one bus would both do: the reason the second one is refused.
 DOUBLED = {
-    "recorder": "record every episode, each into its own folder",
-    "robot": "publish robot/state and drive an arm",
-    "sim": "publish robot/state and camera frames",
-    "camera": "publish the same camera's frames",
-    "teleop": "send a command every tick",
-    "trainer": "take every TRAIN request",
+    frozenset({"recorder"}): "record every episode, each into its own folder",
+    frozenset({"robot"}): "publish robot/state and drive an arm",
+    frozenset({"sim"}): "publish robot/state and camera frames",
+    frozenset({"robot", "sim"}): "publish robot/state",
+    frozenset({"camera", "sim"}): "publish camera frames",
+    frozenset({"camera"}): "publish the same camera's frames",
+    frozenset({"teleop"}): "send a command every tick",
+    frozenset({"trainer"}): "take every TRAIN request",
 }
 
 
@@ -107,10 +109,11 @@ def refuse_rivals(bus, me: str, rivals: set[str]) -> None:
     found = sorted(rivals & bus.alive(timeout=2.0))
     if found:
         rival = found[0]
-        who = f"another {me}" if rival == me else f"a {rival}" + (" service" if "/" not in rival else "")
+        kind = rival.split("/", 1)[0]  # (camera/F: a camera service's token for its camera F)
+        who = f"another {me}" if kind == me else f"a {kind} service"
         raise ConfigError(
-            f"{who} is on this bus (namespace {bus.cfg.namespace!r}): both would {DOUBLED.get(me, 'run')}; "
-            "stop it, or give this session its own bus.namespace"
+            f"{who} is on this bus (namespace {bus.cfg.namespace!r}): both would "
+            f"{DOUBLED.get(frozenset({me, kind}), 'run')}; stop it, or give this session its own bus.namespace"
         )
 
 

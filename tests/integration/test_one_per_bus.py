@@ -32,7 +32,7 @@ def test_a_rival_of_a_running_service_is_refused(zenoh_endpoint):
         assert robot.stdout.readline().startswith("ready robot")
         assert teleop.stdout.readline().startswith("ready teleop")
         for module, sets, says in [
-            ("sim", (), "error: a robot service is on this bus (namespace 'vs'): both would publish robot/state"),
+            ("sim", (), "error: a robot service is on this bus (namespace 'vs'): both would publish robot/state;"),
             ("services.robot", ("--set", "driver.type=sim", "--set", "driver.task=lift"), "error: another robot is"),
             ("services.teleop", (), "error: another teleop is on this bus (namespace 'vs'): both would send"),
         ]:
