@@ -3,7 +3,9 @@ OUT folder on every run, so it must never remove a folder it did not make (OUT=d
 
 from __future__ import annotations
 
+import contextlib
 import os
+import signal
 import subprocess
 from pathlib import Path
 
@@ -11,13 +13,23 @@ ROOT = Path(__file__).resolve().parents[2]
 
 
 def demo(tmp_path: Path, **env: str) -> subprocess.CompletedProcess:
-    return subprocess.run(
+    """Run the script in a process group of its own: should a guard let it through, the whole demo
+    it starts (collect, train, serve) is stopped with it, not left running after the test."""
+    proc = subprocess.Popen(
         ["bash", str(ROOT / "deploy" / "demo.sh")],
         env={**os.environ, **env},
-        capture_output=True,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
         text=True,
-        timeout=120,
+        start_new_session=True,
     )
+    try:
+        out, err = proc.communicate(timeout=120)
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGKILL)  # (whatever it started, it started in this group)
+        proc.wait()
+    return subprocess.CompletedProcess(proc.args, proc.returncode, out, err)
 
 
 def test_an_out_folder_it_did_not_make_is_left_as_it_is(tmp_path):
