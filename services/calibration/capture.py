@@ -1,28 +1,6 @@
-"""``viewscale calibrate capture``: take the calibration images ``calibrate rig`` reads.
-
-    viewscale calibrate capture --config deploy/real.yaml --images data/calib --kind intrinsics
-    viewscale calibrate capture --config deploy/real.yaml --images data/calib --kind board
-    viewscale calibrate capture --config deploy/real.yaml --images data/calib --kind hand_eye
-
-The cameras are opened through the same drivers as the services, from the session file, with the
-camera service not running (it would hold the devices). A shot saves, for every camera, its first
-frame captured after the shot was asked for, as ``<images>/<camera>/<kind>/<NNN>.png`` (lossless),
-and says how many board corners each holds. Shot numbers go on from the images already there: a
-second session adds shots, it never replaces one.
-
-``hand_eye`` takes the arm's EEF pose from ``robot/state`` on the session's bus: run the router, the
-robot service and a teleop (the SpaceMouse, to move the arm between shots) with the same session
-file, as for a collection. The arm stays the robot service's, behind its safety layer; this command
-never connects to it. The pose is read before and after the frames (a shot while the arm moves is
-refused) and written under the key ``NNN`` to ``<images>/hand_eye_poses.yaml``, the
-``--gripper-poses`` file of ``calibrate rig``.
-
-Interactive: Enter takes a shot, ``q`` and Enter (or Ctrl-D) ends. ``--count N --every S``: N shots
-S seconds apart, hands-free while someone moves the board. Frames are taken at
-``camera.width`` x ``camera.height``, the size the session records; ``--set camera.width=1280
---set camera.height=720`` takes them at the device's size for finer corners (the rig file's K is
-scaled to the recorded size).
-"""
+"""``viewscale calibrate capture``: take the calibration images ``calibrate rig`` reads (the
+cameras through their drivers; for ``hand_eye``, the arm's pose from ``robot/state`` on the bus).
+What it does, for its user: ``CAPTURE_DESCRIPTION`` in ``cli.py`` (its ``--help``)."""
 
 from __future__ import annotations
 
@@ -38,7 +16,7 @@ import cv2
 import numpy as np
 import yaml
 
-from services.calibration.charuco import BoardSpec, CalibrationError, detect
+from services.calibration.charuco import IMAGE_KINDS, BoardSpec, CalibrationError, detect
 from services.camera.base import Frame
 from services.camera.config import CAMERA_DRIVERS, CameraConfig
 from services.core import topics
@@ -50,7 +28,7 @@ from services.core.rig import load_rig, placeholder_rig
 from services.pb.sensors_pb2 import RobotState
 from services.robot.config import RobotConfig
 
-KINDS = ("intrinsics", "board", "hand_eye")
+KINDS = IMAGE_KINDS
 POSES_FILE = "hand_eye_poses.yaml"
 FRAME_TIMEOUT_S = 5.0  # how long a shot waits for every camera's next frame
 STATE_TIMEOUT_S = 5.0  # how long a hand-eye shot waits for a robot state newer than its frames

@@ -17,6 +17,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+IMAGE_KINDS = ("intrinsics", "board", "hand_eye")  # a camera's image folders under `calibrate rig --images`
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 MIN_CORNERS = 6  # corners a view needs to count (a homography needs 4; 6 tolerates one bad one)
 MIN_VIEWS = 4  # views an intrinsics fit needs

@@ -37,7 +37,7 @@ import cv2
 import numpy as np
 import yaml
 
-from services.calibration.charuco import BoardSpec, CalibrationError, calibrate_intrinsics, read_images
+from services.calibration.charuco import IMAGE_KINDS, BoardSpec, CalibrationError, calibrate_intrinsics, read_images
 from services.calibration.extrinsics import from_board_pose, hand_eye, pose_matrix
 from services.calibration.rigfile import CameraCalibration, check_errors, write_rig
 from services.core.config import ConfigError
@@ -246,6 +246,31 @@ def _capture(args: argparse.Namespace) -> int:
     return 0
 
 
+CAPTURE_DESCRIPTION = """\
+    viewscale calibrate capture --config deploy/real.yaml --images data/calib --kind intrinsics
+    viewscale calibrate capture --config deploy/real.yaml --images data/calib --kind board
+    viewscale calibrate capture --config deploy/real.yaml --images data/calib --kind hand_eye
+
+The cameras are opened through the same drivers as the services, from the session file, with the
+camera service not running (it would hold the devices). A shot saves, for every camera, its first
+frame captured after the shot was asked for, as <images>/<camera>/<kind>/<NNN>.png (lossless), and
+says how many board corners each holds. Shot numbers go on from the images already there: a second
+session adds shots, it never replaces one.
+
+hand_eye takes the arm's EEF pose from robot/state on the session's bus: run the router, the robot
+service and a teleop (the SpaceMouse, to move the arm between shots) with the same session file, as
+for a collection. The arm stays the robot service's, behind its safety layer; this command never
+connects to it. The pose is read before and after the frames (a shot while the arm moves is
+refused) and written under the key NNN to <images>/hand_eye_poses.yaml, the --gripper-poses file
+of `calibrate rig`.
+
+Interactive: Enter takes a shot, q and Enter (or Ctrl-D) ends. --count N --every S: N shots S
+seconds apart, hands-free while someone moves the board. Frames are taken at camera.width x
+camera.height, the size the session records; --set camera.width=1280 --set camera.height=720
+takes them at the device's size for finer corners (the rig file's K is scaled to the recorded size).
+"""
+
+
 def _board_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--squares", default="7x5", help="squares along x and y of the board (default 7x5)")
     p.add_argument("--square-length", type=float, default=0.04, help="printed square side in m (default 0.04)")
@@ -286,17 +311,17 @@ def add_calibrate_command(subparsers: argparse._SubParsersAction) -> None:
     _board_options(r)
     r.set_defaults(func=_calibrate_rig)
 
-    from services.calibration import capture
-
+    # (capture itself is imported when it runs: it brings the camera drivers and zenoh, which every
+    # `viewscale` command would otherwise load while building its parser)
     c = sub.add_parser(
         "capture",
         help="take the images `calibrate rig` reads, from every camera of a session file at once",
-        description=(capture.__doc__ or "").split("\n\n", 1)[1],
+        description=CAPTURE_DESCRIPTION,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     c.add_argument("--config", required=True, help="the session's YAML (e.g. deploy/real.yaml)")
     c.add_argument("--images", required=True, help="the folder `calibrate rig --images` reads (e.g. data/calib)")
-    c.add_argument("--kind", required=True, choices=capture.KINDS, help="which images (see above)")
+    c.add_argument("--kind", required=True, choices=IMAGE_KINDS, help="which images (see above)")
     c.add_argument("--count", type=int, default=None, help="take this many shots, hands-free (default: one per Enter)")
     c.add_argument("--every", type=float, default=2.0, help="seconds between --count shots (default 2)")
     c.add_argument(
