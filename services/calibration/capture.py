@@ -18,17 +18,16 @@ import yaml
 
 from services.calibration.charuco import IMAGE_KINDS, BoardSpec, CalibrationError, detect
 from services.camera.base import Frame
-from services.camera.config import CAMERA_DRIVERS, CameraConfig
+from services.camera.config import CAMERA_DRIVERS, CameraConfig, stand_in_rig
 from services.core import topics
 from services.core.bus import Bus
 from services.core.clock import now_ns
 from services.core.config import ConfigError, load_config
-from services.core.geometry import quat_wxyz_to_matrix
-from services.core.rig import load_rig, placeholder_rig
+from services.core.geometry import quat_wxyz_to_matrix, rotation_error
+from services.core.rig import load_rig
 from services.pb.sensors_pb2 import RobotState
 from services.robot.config import RobotConfig
 
-KINDS = IMAGE_KINDS
 POSES_FILE = "hand_eye_poses.yaml"
 FRAME_TIMEOUT_S = 5.0  # how long a shot waits for every camera's next frame
 STATE_TIMEOUT_S = 5.0  # how long a hand-eye shot waits for a robot state newer than its frames
@@ -97,8 +96,8 @@ def _fresh_frames(driver, after_ns: int, timeout_s: float) -> dict[str, Frame]:
 
 def _moved(a, b) -> str | None:
     dp = 1000 * float(np.linalg.norm(np.asarray(a.eef_pos) - np.asarray(b.eef_pos)))
-    R = quat_wxyz_to_matrix(np.asarray(a.eef_quat_wxyz)).T @ quat_wxyz_to_matrix(np.asarray(b.eef_quat_wxyz))
-    deg = float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0))))
+    R_a, R_b = (quat_wxyz_to_matrix(np.asarray(s.eef_quat_wxyz)) for s in (a, b))
+    deg = float(np.degrees(np.linalg.norm(rotation_error(R_b, R_a))))
     if dp > STILL_MM or deg > STILL_DEG:
         return f"the arm moved {dp:.1f} mm and {deg:.2f} degrees during the shot: hold it still, and take it again"
     return None
@@ -139,27 +138,27 @@ class Capture:
         board: BoardSpec,
         overrides: dict[str, list[str]] | None = None,
     ):
-        if kind not in KINDS:
-            raise CalibrationError(f"--kind {kind!r}: choose from {', '.join(KINDS)}")
+        if kind not in IMAGE_KINDS:
+            raise CalibrationError(f"--kind {kind!r}: choose from {', '.join(IMAGE_KINDS)}")
         overrides = overrides or {}
         self.images, self.kind, self.board = Path(images), kind, board
         self.cameras = self.bus = self.arm = None
         if self.images.exists() and not self.images.is_dir():
             raise CalibrationError(f"--images {self.images} is a file: name a folder")
         cam_cfg = load_config(CameraConfig, config, overrides.get("camera", []), section="camera")
-        names = list(getattr(cam_cfg.driver, "cameras", None) or [])
         try:
             rig = load_rig(cam_cfg.rig)
         except ConfigError:  # not calibrated yet, which is why we are here
-            if not names:
+            rig = stand_in_rig(cam_cfg)
+            if rig is None:
                 raise CalibrationError(
                     f"camera.rig {cam_cfg.rig!r} cannot be loaded, and the {cam_cfg.driver.type} driver names no "
                     "cameras of its own to open without it"
                 ) from None
-            rig = placeholder_rig(names)
         self.poses_path = self.images / POSES_FILE
-        self.poses = read_poses(self.poses_path) if kind == "hand_eye" else {}
+        self.poses: dict = {}
         if kind == "hand_eye":  # the robot service's bus: where its robot/state goes
+            self.poses = read_poses(self.poses_path)
             robot_cfg = load_config(RobotConfig, config, overrides.get("robot", []), section="robot")
             self.bus = Bus(robot_cfg.bus)
             self.arm = ArmPoses(self.bus)

@@ -8,6 +8,7 @@ from services.camera.base import CameraDriver
 from services.core.bus import BusConfig
 from services.core.config import Frozen, LogLevel
 from services.core.registry import DriverConfig, Registry, World, check_world
+from services.core.rig import Rig, placeholder_rig
 
 
 class SimCameraConfig(DriverConfig):
@@ -130,3 +131,11 @@ class CameraConfig(Frozen):
     def _world(self) -> CameraConfig:
         check_world(self.driver, self.world, "camera")
         return self
+
+
+def stand_in_rig(cfg: CameraConfig) -> Rig | None:
+    """A rig of the driver's camera names with placeholder poses, for opening cameras whose rig
+    file is not written yet (``viewscale check``, ``calibrate capture``); None for a driver that
+    names no cameras of its own (the sim's: its cameras are the rig's)."""
+    names = list(getattr(cfg.driver, "cameras", None) or [])
+    return placeholder_rig(names) if names else None

@@ -21,10 +21,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from services.calibration.check import check_rig
-from services.camera.config import CAMERA_DRIVERS, CameraConfig
+from services.camera.config import CAMERA_DRIVERS, CameraConfig, stand_in_rig
 from services.core.clock import Rate, now_ns
 from services.core.config import ConfigError, load_config
-from services.core.rig import Rig, load_rig, placeholder_rig
+from services.core.rig import Rig, load_rig
 from services.robot.config import ROBOT_DRIVERS, RobotConfig
 
 
@@ -51,13 +51,6 @@ class CameraReport:
 
 def _describe_error(exc: BaseException) -> str:
     return " ".join(str(exc).split()) or type(exc).__name__
-
-
-def stand_in_rig(cfg: CameraConfig) -> Rig | None:
-    """A rig of the driver's camera names with placeholder poses, for opening cameras whose rig
-    file is not written yet (before calibrating them); None for a driver that names no cameras."""
-    names = list(getattr(cfg.driver, "cameras", None) or [])
-    return placeholder_rig(names) if names else None
 
 
 def measure_cameras(cfg: CameraConfig, seconds: float, rig: Rig | None = None) -> list[CameraReport]:
