@@ -318,16 +318,15 @@ def _credentials(args: argparse.Namespace) -> int:
 
 def _check(args: argparse.Namespace) -> int:
     os.environ.setdefault("MUJOCO_GL", "egl")  # a sim rig renders headless, as the camera service does
+    from services.core.cli_args import service_overrides
     from services.core.config import ConfigError
     from services.session.check import run_check
 
-    overrides: dict[str, list[str]] = {}
-    for item in args.set:
-        service, _, rest = item.partition(".")
-        if not rest:
-            print(f"error: --set {item!r} must look like SERVICE.KEY=VALUE (camera. or robot.)", file=sys.stderr)
-            return 2
-        overrides.setdefault(service, []).append(rest)
+    try:  # (a service check reads no settings of, sim.x=1, was ignored without a word before)
+        overrides = service_overrides(args.set, ("camera", "robot"))
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     for flag, value in (("--seconds", args.seconds), ("--max-error-px", args.max_error_px)):
         if not value > 0:  # (a limit of 0 or less would fail every real camera's calibration)
             print(f"error: {flag} must be positive, got {value:g}", file=sys.stderr)

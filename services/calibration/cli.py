@@ -212,13 +212,12 @@ def _capture(args: argparse.Namespace) -> int:
 
     os.environ.setdefault("MUJOCO_GL", "egl")  # a sim rig renders headless, as the camera service does
     from services.calibration.capture import Capture, next_command, run_capture
+    from services.core.cli_args import service_overrides
 
-    overrides: dict[str, list[str]] = {}
-    for item in args.set:
-        service, _, rest = item.partition(".")
-        if service not in ("camera", "robot") or not rest:
-            return _err(f"--set {item!r} must look like camera.KEY=VALUE or robot.KEY=VALUE")
-        overrides.setdefault(service, []).append(rest)
+    try:
+        overrides = service_overrides(args.set, ("camera", "robot"))
+    except ValueError as exc:
+        return _err(str(exc))
     if args.count is not None and args.count < 1:
         return _err(f"--count must be at least 1, got {args.count}")
     if not 0 <= args.every < float("inf"):

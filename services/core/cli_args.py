@@ -21,6 +21,18 @@ def log_level_arg(value: str) -> str:
         raise argparse.ArgumentTypeError(str(exc)) from None
 
 
+def service_overrides(items: list[str], services: tuple[str, ...]) -> dict[str, list[str]]:
+    """``--set SERVICE.KEY=VALUE`` items of a command that reads several services' sections of a
+    session file, by service; ValueError for an item that names none of ``services``."""
+    out: dict[str, list[str]] = {}
+    for item in items:
+        service, _, rest = item.partition(".")
+        if service not in services or not rest:
+            raise ValueError(f"--set {item!r} must look like {' or '.join(f'{s}.KEY=VALUE' for s in services)}")
+        out.setdefault(service, []).append(rest)
+    return out
+
+
 def service_main(
     name: str, model: type[C], main: Callable[[C], int], module: str | None = None, argv: list[str] | None = None
 ) -> int:

@@ -74,6 +74,8 @@ def test_bad_arguments_are_one_error_line(tmp_path):
         (["--max-error-px", "-1"], "error: --max-error-px must be positive, got -1"),
         (["--max-age-days", "-3"], "error: --max-age-days must be 0 or more, got -3"),
         (["--only", ","], "error: --only ,: choose from cameras, calibration, robot"),  # was '--only : ...'
+        # a section check reads nothing of (before: ignored without a word, exit 0)
+        (["--set", "sim.x=1"], "error: --set 'sim.x=1' must look like camera.KEY=VALUE or robot.KEY=VALUE"),
     ]:
         proc = viewscale("check", "--config", str(sim_config(tmp_path)), *args)
         assert proc.returncode == 2
