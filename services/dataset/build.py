@@ -31,6 +31,7 @@ from services.core.normalizer import Normalizer, NormalizerStats
 from services.core.rig import CALIBRATION_MAX_AGE_DAYS
 from services.core.runtime import LOCK_FILE
 from services.core.tensors import FrameSizeError, decode_resized
+from services.core.text import first_few
 from services.dataset.calibration import calibration_problems, problems_of_info
 from services.dataset.contact_sheet import write_contact_sheet
 from services.dataset.episodes import (
@@ -42,7 +43,7 @@ from services.dataset.episodes import (
 )
 from services.dataset.pseudo_demos import PseudoDemo, chunk_starts, longest_segment, make_pseudo_demo, no_chunk_fits
 from services.dataset.store import CONTACT_SHEET, EPISODES, MANIFEST, META, NORMALIZER, SUMMARY, VERSION, DatasetError
-from services.dataset.summary import ACTION_LAYOUT, FAILED, ROLLOUT, first_few, left_out_lines, summarise
+from services.dataset.summary import ACTION_LAYOUT, FAILED, ROLLOUT, left_out_lines, summarise
 from services.recorder.reader import EpisodeReadError, read_episode
 from services.recorder.writer import PART_SUFFIX
 

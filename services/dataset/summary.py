@@ -11,6 +11,7 @@ import numpy as np
 
 from services.core.action_spaces import ACTION_DIM
 from services.core.normalizer import Normalizer
+from services.core.text import first_few
 from services.dataset.pseudo_demos import chunk_starts
 from services.dataset.store import EPISODES
 
@@ -19,19 +20,13 @@ FAILED = "not marked successful"  # --include-failed
 ROLLOUT = "driven by a policy"  # --include-rollouts
 
 
-def first_few(names: Sequence[str], most: int = 3) -> str:
-    """``names`` for a message: the first ``most`` of them, and how many more there are."""
-    return ", ".join(names[:most]) + (f" and {len(names) - most} more" if len(names) > most else "")
-
-
 def left_out_lines(left_out: Sequence[dict[str, str]], head: str = "left out ") -> list[str]:
     """One line per reason: how many episodes, which, and the flag that builds them anyway."""
     lines = []
     for reason, flag in ((FAILED, "--include-failed"), (ROLLOUT, "--include-rollouts")):
         ids = [x["episode"] for x in left_out if reason in x["reason"]]
         if ids:
-            shown = ", ".join(ids[:5]) + (", ..." if len(ids) > 5 else "")
-            lines.append(f"{head}{len(ids)} episodes {reason} ({shown}): {flag} builds them")
+            lines.append(f"{head}{len(ids)} episodes {reason} ({first_few(ids, 5)}): {flag} builds them")
     return lines
 
 
@@ -147,7 +142,7 @@ def format_summary(s: dict[str, Any], path: Path | None = None) -> str:
         sp = s["split"]
         lines.append(
             f"  split         {sp['train']} training, {sp['val']} held-out episodes"
-            + (f" ({', '.join(sp['val_episodes'][:5])}{', ...' if sp['val'] > 5 else ''})" if sp["val"] else "")
+            + (f" ({first_few(sp['val_episodes'], 5)})" if sp["val"] else "")
         )
     if s.get("flagged_episodes"):
         lines.append(

@@ -34,6 +34,7 @@ from mcap.stream_reader import MAGIC_SIZE, breakup_chunk, read_magic
 from mcap.writer import MCAP0_MAGIC, CompressionType
 from mcap.writer import Writer as McapWriter
 
+from services.core.text import first_few
 from services.core.topics import COMMAND, ROBOT_STATE
 from services.pb.control_pb2 import EefCommand
 from services.pb.episode_pb2 import EpisodeMeta
@@ -300,7 +301,7 @@ def main(argv: list[str] | None = None) -> int:
             if done:
                 print(
                     f"{arg}: {len(done)} of {len(sources)} .mcap{PART_SUFFIX} files are recovered already "
-                    f"({', '.join(p.name for p in done[:3])}{', ...' if len(done) > 3 else ''}): skipped; "
+                    f"({first_few([p.name for p in done])}): skipped; "
                     "--force recovers them again",
                     flush=True,
                 )

@@ -31,9 +31,9 @@ from torch.utils.data import DataLoader, Dataset, Sampler
 
 from services.core.config import ConfigError
 from services.core.runtime import LOCK_FILE
+from services.core.text import first_few
 from services.dataset.pseudo_demos import no_chunk_fits
 from services.dataset.store import MANIFEST, DatasetError
-from services.dataset.summary import first_few
 from services.policy import checkpoint as ckpt
 from services.policy.model.diffusion import compute_loss, make_train_scheduler
 from services.policy.model.fastpath import ema_update, gemm_conv1d_pays_off, make_optimizer, use_gemm_conv1d
