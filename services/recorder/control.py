@@ -23,10 +23,13 @@ COMMANDS = {
 
 
 def new_episode_id(task: str, rig: str) -> str:
-    """``<task>-<rig>-<UTC time to the second>``: the id of an episode started by hand; a task or
-    rig not given is left out (neither: ``episode-<time>``)."""
+    """``<task>-<rig>-<UTC time to the millisecond>`` (``lift-five15-20261206T020304.567``): the id
+    of an episode started by hand; a task or rig not given is left out (neither: ``episode-<time>``).
+    To the millisecond: two starts within one second (a start pressed by mistake, stopped at once,
+    and the real one) would name the same file, and the recorder refuses an id it has; an operator
+    at the SpaceMouse sees no reply, only the teleop's log does."""
     head = "-".join(part for part in (task, rig) if part) or "episode"
-    return f"{head}-{datetime.now(timezone.utc).strftime('%Y%m%dT%H%M%S')}"
+    return f"{head}-{datetime.now(timezone.utc).strftime('%Y%m%dT%H%M%S.%f')[:-3]}"
 
 
 def episode_request(

@@ -61,7 +61,7 @@ def test_start_status_stop_and_errors(zenoh_endpoint, tmp_path):
         # neither --task nor --rig (before: the id '--<time>' was refused as invalid)
         plain = cli(zenoh_endpoint, "start")
         assert plain.returncode == 0, plain.stderr
-        assert re.search(r"episode episode-\d{8}T\d{6}\n", plain.stdout), plain.stdout
+        assert re.search(r"episode episode-\d{8}T\d{6}\.\d{3}\n", plain.stdout), plain.stdout
         assert cli(zenoh_endpoint, "discard").returncode == 0
     finally:
         rec.terminate()

@@ -3,12 +3,15 @@ EEF delta mapping and caps, and their configs."""
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import pytest
 from pydantic import ValidationError
 
 from services.pb.episode_pb2 import EpisodeCommand
 from services.recorder.control import COMMANDS, episode_request
+from services.recorder.writer import check_episode_id
 from services.teleop.config import TELEOP_DRIVERS, KeyboardTeleopConfig, SpaceMouseTeleopConfig, TeleopConfig
 from services.teleop.device import eef_delta
 from services.teleop.keyboard import HeldKeys, deflection_of, parse_keys
@@ -110,3 +113,13 @@ def test_episode_requests_are_the_cli_ones():
     assert stop.command == COMMANDS["stop"] and stop.success and stop.episode_id == ""
     with pytest.raises(ValueError, match="unknown episode action"):
         episode_request("pause")
+
+
+def test_starts_a_key_press_apart_are_two_episodes():
+    """Two starts within a second, a stop between them (before: one id per second, the second
+    start refused as 'already exists')."""
+    first = episode_request("start", task="pour", rig="five15").episode_id
+    time.sleep(0.005)
+    second = episode_request("start", task="pour", rig="five15").episode_id
+    assert first != second
+    check_episode_id(first)  # a valid file name
