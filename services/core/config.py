@@ -10,12 +10,14 @@ from __future__ import annotations
 
 import difflib
 import os
+import types
+import typing
 from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
-from typing import Annotated, Any, TypeVar
+from typing import Annotated, Any, TypeVar, Union
 
 import yaml
-from pydantic import AfterValidator, BaseModel, ConfigDict, ValidationError
+from pydantic import AfterValidator, BaseModel, ConfigDict, Tag, ValidationError
 
 ENV_PREFIX = "VIEWSCALE_"
 
@@ -160,12 +162,61 @@ def setting_paths(model: type[BaseModel], prefix: str = "") -> list[str]:
     return paths
 
 
-def _unknown_setting(loc: str, model: type[BaseModel] | None) -> str:
+def _tagged_members(kind: Any) -> dict[str, Any]:
+    """A discriminated union's members by their tag (a driver field: ``{"sim": SimRobotConfig, ...}``)."""
+    members = {}
+    if typing.get_origin(kind) in (Union, types.UnionType):
+        for arg in typing.get_args(kind):
+            if typing.get_origin(arg) is Annotated:
+                inner, *meta = typing.get_args(arg)
+                members.update({m.tag: inner for m in meta if isinstance(m, Tag)})
+    return members
+
+
+def _is_model(kind: Any) -> bool:
+    return isinstance(kind, type) and issubclass(kind, BaseModel)
+
+
+def _written_path(model: type[BaseModel], loc: tuple[Any, ...]) -> tuple[str, type[BaseModel] | None]:
+    """pydantic's ``loc`` as the user wrote it (``driver.ur.hots`` -> ``driver.hots``: the tags of
+    driver unions are pydantic's, not the user's), and the model whose field its last part would be."""
+    written: list[str] = []
+    kind: Any = model
+    owner: type[BaseModel] | None = None
+    parts = list(loc)
+    i = 0
+    while i < len(parts):
+        part = parts[i]
+        written.append(str(part))
+        owner = kind if _is_model(kind) else None
+        if owner is not None:
+            field = owner.model_fields.get(str(part))
+            kind = field.annotation if field is not None else None
+        elif typing.get_origin(kind) in (list, tuple, dict):  # an item, by index or key
+            kind = typing.get_args(kind)[-1] if typing.get_args(kind) else None
+        else:
+            kind = None
+        members = _tagged_members(kind)
+        if members and i + 1 < len(parts) and parts[i + 1] in members:
+            kind = members[parts[i + 1]]
+            i += 1  # the tag
+        elif typing.get_origin(kind) in (Union, types.UnionType):  # ``X | None``
+            models = [a for a in typing.get_args(kind) if _is_model(a)]
+            kind = models[0] if len(models) == 1 else kind
+        i += 1
+    return ".".join(written), owner
+
+
+def _unknown_setting(loc: str, model: type[BaseModel] | None, owner: type[BaseModel] | None = None) -> str:
     """``no such setting``, with the settings it may have meant: the same name elsewhere (``lr`` for
-    ``optim.lr``), or a close spelling."""
+    ``optim.lr``), or a close spelling; ``owner``: the model the setting was given to (a driver's
+    config, which ``model``'s own settings do not list)."""
     if model is None:
         return "no such setting"
     known = setting_paths(model)
+    parent = loc.rsplit(".", 1)[0] if "." in loc else ""
+    if owner is not None and owner is not model:  # (its own settings first: the nearest meant)
+        known = [*setting_paths(owner, f"{parent}."), *(p for p in known if not p.startswith(f"{parent}."))]
     leaf = loc.rsplit(".", 1)[-1]
     near = [p for p in known if p.rsplit(".", 1)[-1] == leaf]
     if not near:
@@ -173,7 +224,6 @@ def _unknown_setting(loc: str, model: type[BaseModel] | None) -> str:
         near = [p for p in known if p.rsplit(".", 1)[-1] in alike]
     if near:
         return f"no such setting (did you mean {' or '.join(near[:3])}?)"
-    parent = loc.rsplit(".", 1)[0] if "." in loc else ""
     siblings = [p.rsplit(".", 1)[-1] for p in known if p.startswith(f"{parent}.") and p.count(".") == loc.count(".")]
     if parent and 0 < len(siblings) <= 12:  # (a section's own settings, when they are few enough to read)
         return f"no such setting ({parent} has {', '.join(siblings)})"
@@ -182,17 +232,20 @@ def _unknown_setting(loc: str, model: type[BaseModel] | None) -> str:
 
 def describe_errors(exc: ValidationError, model: type[BaseModel] | None = None) -> str:
     """pydantic's errors on one line: ``field.path: message (got value)``, joined by ``; ``. With
-    ``model``, an unknown setting names the settings it may have meant (before: pydantic's
-    'Extra inputs are not permitted')."""
+    ``model``, paths are the ones the user wrote (no driver tags), and an unknown setting names
+    the settings it may have meant (before: pydantic's 'Extra inputs are not permitted')."""
     parts = []
     for e in exc.errors():
-        loc = ".".join(str(p) for p in e["loc"] if p not in ("external",))
+        if model is not None:
+            loc, owner = _written_path(model, e["loc"])
+        else:
+            loc, owner = ".".join(str(p) for p in e["loc"]), None
         got = e.get("input")
         shown = "" if isinstance(got, dict) or got is None else f" (got {str(got)[:60]!r})"
         # our validators' own words, without pydantic's 'Value error, ' before them
         msg = str(e["ctx"]["error"]) if e["type"] == "value_error" and "error" in e.get("ctx", {}) else e["msg"]
         if e["type"] == "extra_forbidden":
-            msg = _unknown_setting(loc, model)
+            msg = _unknown_setting(loc, model, owner)
         parts.append(f"{loc}: {msg}{shown}" if loc else f"{msg}{shown}")  # (no loc: a check across fields)
     return "; ".join(parts)
 
@@ -239,5 +292,13 @@ def load_config(
     env = env_overrides(environ)
     env = {k: v for k, v in env.items() if k in model.model_fields}
     data = deep_merge(data, env)
+    overrides = list(overrides)
+    if section is not None and section not in model.model_fields:
+        named = [o for o in overrides if o.strip().startswith(f"{section}.")]
+        if named:  # (before: "robot: no such setting", for the section name a YAML file starts with)
+            raise ConfigError(
+                f"--set {named[0]}: a setting here is named inside the {section!r} section, without "
+                f"'{section}.' before it: --set {named[0].strip()[len(section) + 1 :]}"
+            )
     data = deep_merge(data, parse_overrides(overrides))
     return validate_config(model, data, base, f" (from {yaml_path})" if yaml_path else "")

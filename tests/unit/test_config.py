@@ -51,6 +51,28 @@ def test_unknown_field_is_an_error_naming_it(tmp_path):
         load_config(Model, None, ["zzz=3"], environ={})
 
 
+def test_a_drivers_setting_is_named_as_written_with_what_was_meant():
+    """Before: ``driver.ur.hots: no such setting`` (the union's tag in the path, nothing suggested)."""
+    from services.camera.config import CameraConfig
+    from services.robot.config import RobotConfig
+
+    with pytest.raises(ConfigError, match=r"driver.hots: no such setting \(did you mean driver.host\?\) \(got '1'\)$"):
+        load_config(RobotConfig, None, ["driver.type=ur", "driver.host=10.0.0.2", "driver.hots=1"], environ={})
+    with pytest.raises(ConfigError, match=r"driver.host: Field required"):
+        load_config(RobotConfig, None, ["driver.type=ur"], environ={})
+    with pytest.raises(
+        ConfigError, match=r"driver.cameras.F.fpss: no such setting \(did you mean driver.cameras.F.fps or fps\?\)"
+    ):
+        load_config(CameraConfig, None, ["driver={type: opencv, cameras: {F: {source: 0, fpss: 30}}}"], environ={})
+
+
+def test_a_setting_written_with_its_section_name_says_how_to_write_it(tmp_path):
+    """``python -m services.robot --set robot.driver.host=...`` (as a YAML file nests it, and as
+    ``viewscale collect --set sim.x=`` takes it); before: ``robot: no such setting``."""
+    with pytest.raises(ConfigError, match=r"^--set svc.inner.a=4: .* inside the 'svc' section.*: --set inner.a=4$"):
+        load_config(Model, None, ["svc.inner.a=4"], environ={}, section="svc")
+
+
 def test_bad_override_and_missing_file(tmp_path):
     with pytest.raises(ConfigError, match="key.path=value"):
         load_config(Model, None, ["rate"], environ={})
