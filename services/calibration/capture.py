@@ -122,7 +122,9 @@ class ArmPoses:
             if not self._cond.wait_for(lambda: self._latest is not None and self._latest[0] >= t_ns, timeout_s):
                 raise CalibrationError(
                     f"no robot/state on the bus within {timeout_s:g} s: run the router and the robot service "
-                    "with this session file (hand_eye reads the arm's pose from it)"
+                    "with this session file (hand_eye reads the arm's pose from it); on a bus with access "
+                    "control, run capture as the operator user (VIEWSCALE_BUS__USER=operator "
+                    "VIEWSCALE_BUS__PASSWORD_FILE=.../operator.password), which may hear robot/state"
                 )
             return self._latest[1]
 

@@ -20,6 +20,7 @@ import numpy as np
 import pytest
 from polling import wait_for
 
+from services.calibration.charuco import CalibrationError
 from services.core import topics
 from services.core.bus import Bus, BusConfig, Received, free_tcp_port
 from services.core.tensors import compressed_image
@@ -192,3 +193,23 @@ def test_the_recorder_answers_the_session_and_nobody_else(open_bus, tmp_path):
         # The operator's CLI may (viewscale episode).
         operator = open_bus("operator")
         assert EpisodeReply.FromString(operator.query(topics.EPISODE_CONTROL, status_request(), timeout=10)).ok
+
+
+def test_the_operator_hears_the_arms_state_for_a_hand_eye_capture(open_bus):
+    """``viewscale calibrate capture --kind hand_eye``, run as the operator, reads robot/state
+    (before: the router dropped it, and capture said that no robot service was running)."""
+    from services.calibration.capture import ArmPoses
+
+    poses = ArmPoses(open_bus("operator"))
+    robot = open_bus("robot")
+    state = robot.publisher(topics.ROBOT_STATE)
+    t0 = time.time_ns()
+    for tick in range(50):  # until the operator's subscription has reached the router
+        state.put(robot_state(tick))
+        try:
+            assert poses.after(t0, timeout_s=0.2).eef_pos[0] == pytest.approx(0.4)
+            break
+        except CalibrationError:
+            continue
+    else:
+        pytest.fail("the operator never heard robot/state")
