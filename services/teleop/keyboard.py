@@ -170,7 +170,21 @@ def _open_tty(path: str | None) -> tuple[int, bool]:
             "keyboard teleop needs a terminal: stdin is not one (run the teleop in a terminal, "
             "in compose with `stdin_open: true` and `tty: true`, or set driver.tty=/dev/pts/N)"
         )
+    if _in_background(fd):  # (before: the terminal stopped it, SIGTTOU, with no word said)
+        raise ConfigError(
+            "keyboard teleop: it runs in the background of its terminal (started with &?), where the "
+            "keys do not reach it: run it in the foreground, or set driver.tty=/dev/pts/N of another terminal"
+        )
     return fd, False
+
+
+def _in_background(fd: int) -> bool:
+    """Whether ``fd`` is this process's controlling terminal and another process group has it:
+    setting its mode would stop this process (SIGTTOU), and its keys go to the foreground group."""
+    try:
+        return os.tcgetpgrp(fd) != os.getpgrp()
+    except OSError:  # not this process's controlling terminal: no job control applies
+        return False
 
 
 class KeyboardTeleop(DeviceTeleop):

@@ -198,6 +198,60 @@ def test_keyboard_needs_a_terminal(tmp_path):
         TELEOP_DRIVERS.build(KeyboardTeleopConfig(tty=str(tmp_path / "missing")))
 
 
+# A terminal of its own, as a shell's: the helper leads a new session with a fresh pty as its
+# controlling terminal, its group in the foreground, and runs the command there or as a background
+# job (a process group of its own, as `cmd &` in an interactive shell makes it).
+JOB = """
+import fcntl, os, subprocess, sys, termios, time
+master, slave = os.openpty()
+fcntl.ioctl(slave, termios.TIOCSCTTY, 0)
+background = sys.argv[1] == "background"
+job = subprocess.Popen(sys.argv[2:], stdin=slave, process_group=0 if background else None)
+deadline = time.monotonic() + 30
+while job.poll() is None and time.monotonic() < deadline:
+    with open(f"/proc/{job.pid}/stat") as f:
+        if f.read().rsplit(") ", 1)[1].split()[0] == "T":
+            job.kill()
+            sys.exit("stopped by its terminal")
+    time.sleep(0.05)
+sys.exit(job.wait() if job.returncode is not None else "still running")
+"""
+
+OPEN_KEYBOARD = (
+    "from services.teleop.config import KeyboardTeleopConfig\n"
+    "from services.teleop.keyboard import KeyboardTeleop\n"
+    "KeyboardTeleop(KeyboardTeleopConfig()).close()\n"
+    "print('opened')"
+)
+
+
+def test_keyboard_started_in_the_background_of_its_terminal_says_so():
+    """README's `... &` loop with the keyboard teleop: before, the terminal stopped the process
+    (SIGTTOU, setting its mode) and nothing was said; in the foreground it opens as before."""
+    teleop = [sys.executable, "-m", "services.teleop", "--set", "driver.type=keyboard"]
+    job = subprocess.run(
+        [sys.executable, "-c", JOB, "background", *teleop],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        start_new_session=True,
+        cwd=Path(__file__).resolve().parents[2],
+    )
+    assert job.returncode == 2, job.stderr
+    assert job.stderr.strip().splitlines()[-1] == (
+        "error: keyboard teleop: it runs in the background of its terminal (started with &?), where the keys "
+        "do not reach it: run it in the foreground, or set driver.tty=/dev/pts/N of another terminal"
+    )
+    fore = subprocess.run(
+        [sys.executable, "-c", JOB, "foreground", sys.executable, "-c", OPEN_KEYBOARD],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        start_new_session=True,
+    )
+    assert fore.returncode == 0 and fore.stdout.strip() == "opened", fore.stderr
+
+
 # -- SpaceMouse ---------------------------------------------------------------------------------
 
 
