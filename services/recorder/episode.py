@@ -12,7 +12,20 @@ Flags, in this order: events (liveliness losses and restarts, write errors) as t
 time only: a lockstep session runs as fast as the machine goes, so its rate says nothing);
 recorder queue drops; malformed payloads; publisher restarts; sequence gaps not explained by
 our own drops; robot faults; stale ticks; clipped ticks; fewer robot states than the ticks the
-source says it published; a camera whose frame count differs from the tick count.
+source says it published; a camera whose frame count differs from the tick count; a publisher
+whose capture stamps disagree with the recorder's clock.
+
+Clocks. Every message carries its capture time from its publisher's clock, and the dataset pairs
+frames with states by those times: a camera host whose clock is 300 ms off the robot's pairs every
+state with a frame from six ticks away, and nothing else shows it. The recorder receives each
+message after its capture, so per topic the smallest ``receive - capture`` of an episode is the
+quickest delivery plus the publisher's clock offset. Below ``-CLOCK_AHEAD_NS`` (captured after it
+was received) the publisher's clock is ahead of the recorder's. Above ``CLOCK_BEHIND_NS`` on a
+topic stamped when it is published (robot state, applied actions, commands, task state), even the
+quickest message took that long, and the clock is behind (or every message was held up). A
+camera's frames are stamped at capture, which comes a latency before they are sent (an RTSP
+stream's can be a second or more), so they are checked for a clock ahead only. Calibration and
+pose messages are republished copies and not checked.
 """
 
 from __future__ import annotations
@@ -32,6 +45,10 @@ def camera_of(key: str) -> str:
 
 def is_calibration(key: str) -> bool:
     return key.startswith("camera/") and (key.endswith("/calibration") or key.endswith("/pose"))
+
+
+CLOCK_AHEAD_NS = 20_000_000  # 20 ms: beyond what synchronised clocks (NTP, chrony, PTP) differ by
+CLOCK_BEHIND_NS = 500_000_000  # 500 ms: far longer than a message stamped as it is sent takes on a lab network
 
 
 def fmt_counts(counts: dict[str, int]) -> str:
@@ -60,6 +77,7 @@ class EpisodeCounts:
     events: list[str] = field(default_factory=list)  # flags from liveliness and errors, in order
     left: set[str] = field(default_factory=set)  # services that lost liveliness during the episode
     sources: set[str] = field(default_factory=set)  # EefCommand.source of the commands written
+    quickest: dict[str, int] = field(default_factory=dict)  # key -> smallest receive - capture (ns)
 
     @classmethod
     def start(cls, req: EpisodeRequest, path: str, start_ns: int) -> EpisodeCounts:
@@ -101,9 +119,14 @@ class EpisodeCounts:
             return 0.0
         return (self.state_n - 1) * 1e9 / (self.state_last - self.state_first)
 
-    def count(self, key: str, msg, stamp_ns: int) -> int | None:
-        """Count one written message of ``key``; returns the previous sequence if this one went back."""
+    def count(self, key: str, msg, stamp_ns: int, receive_ns: int | None = None) -> int | None:
+        """Count one written message of ``key`` (captured at ``stamp_ns`` by its publisher's clock,
+        received at ``receive_ns`` by the recorder's); returns the previous sequence if this one went back."""
         self.written[key] += 1
+        if receive_ns is not None and stamp_ns and not is_calibration(key):
+            delay = receive_ns - stamp_ns
+            if delay < self.quickest.get(key, delay + 1):
+                self.quickest[key] = delay
         if key.endswith("/image") or is_calibration(key):
             self.cameras.add(camera_of(key))
         went_back = None
@@ -193,5 +216,25 @@ def episode_meta(
     for cam, n in sorted(meta.frames.items()):
         if n != meta.ticks:
             flags.append(f"camera {cam}: {n} frames for {meta.ticks} ticks")
+    flags += clock_flags(ep.quickest)
     meta.flags.extend(flags)
     return meta
+
+
+def clock_flags(quickest: dict[str, int]) -> list[str]:
+    """One flag per topic whose capture stamps disagree with the recorder's clock (module docstring)."""
+    flags = []
+    for key, delay in sorted(quickest.items()):
+        if delay < -CLOCK_AHEAD_NS:
+            flags.append(
+                f"clock: {key} stamped up to {-delay / 1e6:.0f} ms after the recorder received it: its "
+                "publisher's clock is ahead of the recorder's, and frames pair with the wrong states "
+                "(synchronise the hosts' clocks: chrony or PTP)"
+            )
+        elif delay > CLOCK_BEHIND_NS and not key.startswith("camera/"):
+            flags.append(
+                f"clock: {key} reached the recorder {delay / 1e6:.0f} ms after its capture stamp at the quickest: "
+                "its publisher's clock is behind the recorder's (or every message was held up), and frames "
+                "may pair with the wrong states (synchronise the hosts' clocks: chrony or PTP)"
+            )
+    return flags

@@ -498,7 +498,7 @@ class Recorder:
             ep.note(ep.error)
             log.error("episode %s: %s; writing stops, the partial file is kept", ep.meta.episode_id, ep.error)
             return
-        last = ep.count(key, msg, stamp)
+        last = ep.count(key, msg, stamp, rx.receive_ns)
         if last is not None:
             log.warning(
                 "episode %s: sequence on %s went back from %d (publisher restart?)", ep.meta.episode_id, key, last

@@ -111,6 +111,7 @@ def publish(bus: Bus, ticks: int, cameras=("F", "L"), shape=(32, 48)) -> dict[st
     t0 = time.time_ns()
     for i in range(ticks):
         stamp = t0 + i * 20_000_000
+        time.sleep(max(0.0, (stamp - time.time_ns()) / 1e9))  # sent when stamped, as a real source's
         state = RobotState(tick=i, eef_pos=[0.4, 0.0, 0.2], eef_quat_wxyz=[1, 0, 0, 0])
         state.header.stamp_ns, state.header.seq = stamp, i
         data = state.SerializeToString()

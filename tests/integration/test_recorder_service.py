@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import threading
 import time
 from contextlib import ExitStack
@@ -96,10 +97,13 @@ def status(bus: Bus) -> EpisodeReply:
 
 
 class Source:
-    """A synthetic session: robot state, applied action, task state and a JPEG per camera per tick."""
+    """A synthetic session: robot state, applied action, task state and a JPEG per camera per tick.
+    ``paced``: each tick is sent at its capture stamp, as a real source's is (sent earlier, the
+    recorder flags a publisher clock ahead of its own); unpaced, as fast as it goes (a flood)."""
 
-    def __init__(self, bus: Bus, cameras: tuple[str, ...] = ("F", "L"), shape=(24, 32)):
+    def __init__(self, bus: Bus, cameras: tuple[str, ...] = ("F", "L"), shape=(24, 32), paced: bool = True):
         self.bus = bus
+        self.paced = paced
         self.cameras = cameras
         self.state = bus.publisher(topics.ROBOT_STATE)
         self.applied = bus.publisher(topics.APPLIED_ACTION)
@@ -125,6 +129,8 @@ class Source:
         """Tick ``i``: its state and frames (``observe``), then its applied action and task state (``act``)."""
         stamp = self.t0 + i * PERIOD_NS
         seq = i if seq is None else seq
+        if self.paced:
+            time.sleep(max(0.0, (stamp - time.time_ns()) / 1e9))
         if observe:
             state = RobotState(
                 tick=i, eef_pos=[0.4, 0.0, 0.2], eef_quat_wxyz=[1, 0, 0, 0]
@@ -407,7 +413,7 @@ def test_a_slow_writer_with_tiny_queues_drops_and_counts(net, make_recorder):
     pub = net.client()
     pub.wait_alive(["recorder"], timeout=10)
     # Noise compresses badly: ~300 kB frames whose full decode keeps the writer far behind.
-    src = Source(pub, cameras=("F",), shape=(480, 640))
+    src = Source(pub, cameras=("F",), shape=(480, 640), paced=False)
     assert start(pub, "flood").ok
     src.run(range(60))
     reply = control(pub, EPISODE_COMMAND_STOP, success=True, ticks=60)
@@ -434,6 +440,33 @@ def test_an_episode_below_the_rate_floor_is_flagged(net, make_recorder):
     flags = list(reply.meta.flags)
     assert "low rate: robot state at 50.00 Hz < 0.9 x 100 Hz" in flags
     assert "robot/state: 10 states for 12 ticks" in flags and "camera F: 10 frames for 12 ticks" in flags
+
+
+def test_a_publisher_whose_clock_is_off_the_recorders_is_flagged(net, make_recorder):
+    """A camera host 300 ms ahead and a robot host 800 ms behind the recorder's clock (before:
+    recorded without a word, and the dataset paired each state with a frame six ticks away)."""
+    make_recorder()
+    pub = net.client()
+    pub.wait_alive(["recorder"], timeout=10)
+    src = Source(pub, cameras=("F", "L"))
+    assert start(pub, "skewed").ok
+    for i in range(10):
+        stamp = src.tick(i, observe=False)  # applied actions and task state: on time
+        state = RobotState(tick=i, eef_pos=[0.4, 0.0, 0.2], eef_quat_wxyz=[1, 0, 0, 0])
+        state.header.stamp_ns, state.header.seq = stamp - 800_000_000, i
+        src.state.put(state)
+        src.images["F"].put(compressed_image(src.frame, stamp + 300_000_000, "F"))
+        src.images["L"].put(compressed_image(src.frame, stamp - 800_000_000, "L"))  # a slow stream: latency
+    reply = control(pub, EPISODE_COMMAND_STOP, success=True, ticks=10)
+    assert reply.ok, reply.error
+    clock = [f for f in reply.meta.flags if f.startswith("clock:")]
+    assert len(clock) == 2, list(reply.meta.flags)
+    ahead = (
+        r"clock: camera/F/image stamped up to (2\d\d|300) ms after the recorder received it: its "
+        + "publisher's clock is ahead"
+    )
+    behind = r"clock: robot/state reached the recorder (8\d\d|9\d\d) ms after its capture stamp at the quickest: "
+    assert re.match(ahead, clock[0]) and re.match(behind, clock[1]), clock
 
 
 def test_stop_waits_for_the_last_ticks_applied_action(net, make_recorder):

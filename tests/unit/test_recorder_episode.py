@@ -127,3 +127,25 @@ def test_the_drivers_whose_commands_it_holds_are_named_once_each():
     for k, source in enumerate(["spacemouse", "policy", "policy", ""]):
         ep.count("teleop/command", EefCommand(tick=k, source=source), T0 + k * PERIOD)
     assert list(meta(ep).command_sources) == ["policy", "spacemouse"]
+
+
+def test_clock_flags_take_the_quickest_delivery_per_topic():
+    ep = opened()
+    for k in range(5):
+        t = T0 + k * PERIOD
+        ep.count("robot/state", RobotState(header=Header(stamp_ns=t, seq=k), tick=k), t, t + 2_000_000)
+        # a camera stamped at capture, 120-900 ms before it arrives (an RTSP stream's latency): no clock fault
+        ep.count("camera/F/image", object(), t, t + 120_000_000 + k * 200_000_000)
+        ep.count("camera/F/calibration", object(), t - 10**10, t)  # a republished copy: not checked
+    assert [f for f in meta(ep, ticks=5).flags if f.startswith("clock")] == []
+    ahead = opened()
+    t = T0
+    ahead.count("camera/F/image", object(), t + 25_000_000, t)  # 25 ms ahead: beyond synchronised clocks
+    ahead.count("camera/F/image", object(), t + 50, t + 10_000_000)
+    ahead.count("robot/state", RobotState(header=Header(stamp_ns=t, seq=0)), t - 600_000_000, t)  # behind
+    ahead.count("robot/state", RobotState(header=Header(stamp_ns=t, seq=1)), t - 700_000_000, t)
+    flags = [f for f in meta(ahead).flags if f.startswith("clock")]
+    assert [f.split(":")[1].split(" ms")[0] for f in flags] == [
+        " camera/F/image stamped up to 25",
+        " robot/state reached the recorder 600",
+    ]
