@@ -226,6 +226,7 @@ def _take_back(made: list[Path]) -> None:
 
 
 LOCK_FILE = ".viewscale.lock"  # held in an output folder while a command writes there
+READ_BY = "read by"  # what a reader writes in the lock file: ``read by a training (pid ...)``
 
 
 @contextlib.contextmanager
@@ -243,6 +244,8 @@ def exclusive(path: str | os.PathLike, what: str) -> Iterator[None]:
             fh.seek(0)
             holder = fh.read().strip()
             fh.close()
+            if holder.startswith(READ_BY):  # (a training reading the dataset this build would replace)
+                raise OutputError(f"{path} is {holder}: wait for it to end, or choose another folder") from None
             raise OutputError(
                 f"{path} is in use by another {what}"
                 + (f" ({holder})" if holder else "")
@@ -264,4 +267,48 @@ def exclusive(path: str | os.PathLike, what: str) -> Iterator[None]:
     finally:
         with contextlib.suppress(OSError):
             lock.unlink()
+        fh.close()
+
+
+@contextlib.contextmanager
+def reading(path: str | os.PathLike, what: str) -> Iterator[None]:
+    """Hold the lock of folder ``path`` shared while a command reads it (a training its dataset): a
+    command that would write there (``exclusive``: a dataset build over it) is refused meanwhile,
+    naming the reader, instead of replacing files under it. Readers share the lock; one that finds
+    the folder being written is refused, naming the writer. A folder where no lock file can be made
+    (a dataset on a read-only mount) is read without one."""
+    lock = Path(path) / LOCK_FILE
+    while True:
+        try:
+            fh = open(lock, "a+")
+        except OSError:  # read-only, or not ours to write: nothing can write there either
+            yield
+            return
+        try:
+            fcntl.flock(fh, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        except BlockingIOError:
+            fh.seek(0)
+            holder = fh.read().strip()
+            fh.close()
+            raise OutputError(
+                f"{path} is being written" + (f" ({holder})" if holder else "") + ": wait for it to end"
+            ) from None
+        try:
+            same = os.stat(lock).st_ino == os.fstat(fh.fileno()).st_ino
+        except FileNotFoundError:
+            same = False
+        if same:
+            break
+        fh.close()  # a writer removed it while we opened it: take the new one
+    try:
+        fh.truncate(0)  # (several readers: the last one to start is named)
+        fh.write(f"{READ_BY} a {what} (pid {os.getpid()} on {socket.gethostname()})\n")
+        fh.flush()
+        yield
+    finally:
+        try:  # the last reader removes the lock file (one that gets the lock to itself)
+            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            lock.unlink()
+        except OSError:  # (BlockingIOError: another reader holds it still)
+            pass
         fh.close()

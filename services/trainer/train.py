@@ -13,6 +13,7 @@ checkpoint, so a resumed run takes the same batches and the same noise as one th
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import math
@@ -30,7 +31,7 @@ import torch.distributed as dist
 from torch.utils.data import DataLoader, Dataset, Sampler
 
 from services.core.config import ConfigError
-from services.core.runtime import LOCK_FILE
+from services.core.runtime import LOCK_FILE, reading
 from services.core.text import first_few
 from services.dataset.pseudo_demos import no_chunk_fits
 from services.dataset.store import MANIFEST, DatasetError
@@ -428,7 +429,21 @@ def train(
     on_progress: Callable[[dict[str, Any]], None] | None = None,
     stop: threading.Event | None = None,
 ) -> TrainResult:
-    """Train (or resume) the run in ``cfg.out``; returns when ``cfg.steps`` are done or ``stop`` is set."""
+    """Train (or resume) the run in ``cfg.out``; returns when ``cfg.steps`` are done or ``stop`` is set.
+    The dataset folder is held for reading meanwhile: its frames are read as the training goes, and a
+    dataset build over it would otherwise replace them under the run (or remove them: a crash)."""
+    check_run_dir(Path(cfg.out))
+    data = data or load_train_data(cfg)
+    with reading(data.source, "training") if data.source else contextlib.nullcontext():
+        return _train(cfg, data, on_progress, stop)
+
+
+def _train(
+    cfg: TrainConfig,
+    data: TrainData,
+    on_progress: Callable[[dict[str, Any]], None] | None,
+    stop: threading.Event | None,
+) -> TrainResult:
     rank, local_rank, world = dist_env()
     device = pick_device(cfg.device, local_rank)
     distributed = world > 1
@@ -438,9 +453,6 @@ def train(
         torch.cuda.set_device(device)
     main = rank == 0
     out = Path(cfg.out)
-    check_run_dir(out)
-
-    data = data or load_train_data(cfg)
     space = check_action_space(cfg, data.meta)
     model_cfg = resolve_model_config(cfg, data.meta)
     views = list(cfg.views or data.meta.get("views", []))

@@ -553,6 +553,27 @@ def test_a_run_refused_by_the_dataset_leaves_no_run_folder(sim_dataset, tmp_path
         assert not (tmp_path / "runs").exists()  # nor the parent made for it
 
 
+def test_a_training_holds_its_dataset_against_a_build_over_it(sim_dataset, tmp_path):
+    """(a `viewscale dataset build --out` over the dataset of a running training replaced the frame
+    files it reads as it goes, or removed them under it)"""
+    from services.core.runtime import OutputError, exclusive
+
+    said = []
+
+    def build_over_it(event):
+        if not said:
+            try:
+                with exclusive(sim_dataset, "dataset build"):
+                    said.append("the build was let in")
+            except OutputError as exc:
+                said.append(str(exc))
+
+    train(train_config_from_dict(tiny(sim_dataset, tmp_path / "run", steps=1)), on_progress=build_over_it)
+    assert len(said) == 1 and said[0].startswith(f"{sim_dataset} is read by a training (pid {os.getpid()} "), said
+    with exclusive(sim_dataset, "dataset build"):  # given up when the training ended
+        pass
+
+
 def test_a_second_training_of_the_same_run_is_refused(sim_dataset, tmp_path, capsys):
     """(two trainings of one --out, from two terminals, both resumed it and wrote checkpoints into it)"""
     from services.core.runtime import exclusive

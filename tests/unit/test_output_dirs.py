@@ -136,3 +136,46 @@ def test_output_kind_and_refusing_another_commands_folder(tmp_path, holds, kind)
         with pytest.raises(OutputError, match=rf"^--out {out} is {kind}: choose another folder"):
             refuse_other_output(out, "--out", RECORDINGS)
     assert sorted(p.name for p in out.iterdir()) == before
+
+
+def test_a_folder_being_read_is_refused_to_a_writer_and_shared_by_readers(tmp_path):
+    """A training reads its dataset's frames as it goes: a dataset build over it (exclusive) is
+    refused, naming the reader (before: it replaced the files under the running training)."""
+    import os
+
+    from services.core.runtime import LOCK_FILE, exclusive, reading
+
+    with reading(tmp_path, "training"):
+        with reading(tmp_path, "training"):  # readers share it
+            with pytest.raises(
+                OutputError, match=rf"^{tmp_path} is read by a training \(pid {os.getpid()} on .*\): wait"
+            ):
+                with exclusive(tmp_path, "dataset build"):
+                    pass
+        with pytest.raises(OutputError, match="is read by a training"):  # one reader still holds it
+            with exclusive(tmp_path, "dataset build"):
+                pass
+    assert not (tmp_path / LOCK_FILE).exists()  # the last reader tidies up
+    with exclusive(tmp_path, "dataset build"):
+        with pytest.raises(OutputError, match=rf"^{tmp_path} is being written \(pid {os.getpid()} on .*\): wait"):
+            with reading(tmp_path, "training"):
+                pass
+    with exclusive(tmp_path, "dataset build"):  # free again
+        pass
+
+
+def test_a_read_only_folder_is_read_without_a_lock(tmp_path):
+    import os
+
+    from services.core.runtime import LOCK_FILE, reading
+
+    folder = tmp_path / "mounted"
+    folder.mkdir()
+    folder.chmod(0o555)
+    try:
+        if os.access(folder, os.W_OK):  # (root may write anywhere: then make the lock a folder)
+            (folder / LOCK_FILE).mkdir()
+        with reading(folder, "training"):
+            pass
+    finally:
+        folder.chmod(0o755)
