@@ -111,11 +111,15 @@ def _serve(args: argparse.Namespace) -> int:
         unused = [f"{cfg.workers} local workers"] if cfg.workers else []
         unused += [f"worker {a}" for a in cfg.worker]
         print(f"warning: --in-process computes every view here; not used: {', '.join(unused)}", file=sys.stderr)
-    from services.policy.checkpoint import CheckpointError, inference_device
+    from services.policy.checkpoint import CheckpointError, inference_device, resolve_checkpoint
     from services.policy.server import LocalWorkers, load_spec, serve_policy
     from services.policy.transport import ListenError
 
     try:
+        # A run's latest checkpoint, resolved once: the one the server describes, computes with and
+        # starts its local workers on (a run still training moves its latest on; before, a local
+        # worker restarted later loaded the newer one and the server's answers went without it)
+        cfg = cfg.model_copy(update={"checkpoint": str(resolve_checkpoint(cfg.checkpoint))})
         load_spec(cfg)  # a bad checkpoint, view or device is one line, before any process starts
         here = cfg.in_process or not (cfg.workers or cfg.worker)  # this process computes
         if here or cfg.workers:  # (the device is that of the in-process model and of local workers)

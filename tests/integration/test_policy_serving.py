@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 import re
+import shutil
 import signal
 import subprocess
 import sys
@@ -24,7 +25,7 @@ from polling import wait_for
 from services.core.action_spaces import from_space
 from services.core.bus import free_tcp_port
 from services.pb import policy_pb2, policy_pb2_grpc
-from services.policy.checkpoint import load_policy
+from services.policy.checkpoint import LATEST, POLICY_FILE, latest_checkpoint, load_policy
 from services.policy.client import ActionChunk, PolicyClient, PolicyError, State
 from services.policy.config import ServerConfig
 from services.policy.model import sample
@@ -418,16 +419,28 @@ def local_workers(server_pid: int) -> dict[int, list[str]]:
     return out
 
 
-def test_serve_restarts_a_local_worker_that_dies_on_its_address(checkpoint, observations):
-    """`viewscale serve --workers 2`, four robots calling in a loop, one worker process killed
-    (kill -9, as the OOM killer would): its views move meanwhile, not one GetAction fails, and the
-    server starts it again on its address, where it serves again."""
-    server, addr = start_server(checkpoint, "--views", "F,FL,FR", "--workers", "2")
+def test_serve_restarts_a_local_worker_that_dies_on_its_address(checkpoint, observations, tmp_path):
+    """`viewscale serve --workers 2` on a run, four robots calling in a loop, one worker process
+    killed (kill -9, as the OOM killer would): its views move meanwhile, not one GetAction fails,
+    and the server starts it again on its address, where it serves again -- the checkpoint the
+    server serves, though the run (still training) has a newer one by then (before: the restarted
+    worker loaded the run's newer latest, and the server did not admit it)."""
+    run = tmp_path / "run"
+    shutil.copytree(checkpoint, run)
+    served_step = latest_checkpoint(run)
+    newer = served_step.with_name("step_9999999")
+    shutil.copytree(served_step, newer)
+    with open(newer / POLICY_FILE, "a") as f:
+        f.write("\n")  # another checkpoint: another hash
+    server, addr = start_server(run, "--views", "F,FL,FR", "--workers", "2")
     robots = Robots(addr, observations)
     try:
         # the server answers once one worker is ready: kill one only when both are admitted (else
         # the other may still be loading its model, with nowhere for the views to move)
         wait_for(lambda: server.log_path.read_text().count(" admitted (") >= 2, 60, "both workers admitted")
+        marker = run / "checkpoints" / LATEST
+        marker.with_name("latest.tmp").write_text(newer.name)
+        os.replace(marker.with_name("latest.tmp"), marker)  # the training wrote a newer checkpoint
         with robots:
             first = local_workers(server.pid)
             assert len(first) == 2
