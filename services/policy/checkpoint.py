@@ -18,11 +18,14 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import os
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
+
+from services.core.runtime import OutputError, exclusive
 
 if TYPE_CHECKING:  # torch, safetensors and the model are imported where they are used: reading a
     import torch  # checkpoint's JSON (`viewscale eval`, the session, the CLI) must not load torch
@@ -36,6 +39,8 @@ POLICY_FILE = "policy.json"
 STATE_FILE = "train_state.safetensors"
 STATE_JSON = "train_state.json"
 LATEST = "latest"
+
+log = logging.getLogger(__name__)
 
 
 class CheckpointError(ValueError):
@@ -183,10 +188,20 @@ def save_checkpoint(
     done = sorted(p for p in path.parent.glob("step_*") if p.is_dir() and not p.name.endswith(".partial"))
     for old in done[:-keep]:
         if old != path:
-            shutil.rmtree(old, ignore_errors=True)
+            _remove_unless_served(old)
     for cut in path.parent.glob("step_*.partial"):
         shutil.rmtree(cut, ignore_errors=True)
     return path
+
+
+def _remove_unless_served(old: Path) -> None:
+    """Remove an old checkpoint folder, unless a policy server or worker serves it (they hold it
+    for reading: a worker restarted later loads it again). A later save removes it once none does."""
+    try:
+        with exclusive(old, "checkpoint removal"):
+            shutil.rmtree(old, ignore_errors=True)
+    except OutputError as exc:
+        log.info("checkpoint %s kept: %s", old, exc)
 
 
 def checkpoint_sha256(path: str | Path) -> str:

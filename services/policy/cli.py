@@ -128,14 +128,18 @@ def _serve(args: argparse.Namespace) -> int:
             inference_device(cfg.device, cfg.precision if here else "fp32")
     except (CheckpointError, ValueError, OSError) as exc:
         return _error(exc)
-    from services.core.runtime import OutputError, writable_dir
+    from services.core.runtime import OutputError, reading, writable_dir
 
     try:
         log_dir = writable_dir(args.log_dir, "--log-dir") if args.log_dir else None
     except OutputError as exc:
         return _error(exc)
     try:
-        with LocalWorkers(cfg, cfg.workers if not cfg.in_process else 0, log_dir) as local:
+        # held while it serves: the run's training keeps it (a worker started again loads it again)
+        with (
+            reading(cfg.checkpoint, "policy server"),
+            LocalWorkers(cfg, cfg.workers if not cfg.in_process else 0, log_dir) as local,
+        ):
             addresses = [*cfg.worker, *local.addresses]
 
             async def serve(stop):
@@ -146,7 +150,7 @@ def _serve(args: argparse.Namespace) -> int:
                     supervisor.cancel()
 
             return _run(serve)
-    except (RuntimeError, TimeoutError, CheckpointError, ListenError) as exc:  # (weights unreadable, port taken)
+    except (RuntimeError, TimeoutError, CheckpointError, ListenError, OutputError) as exc:  # (weights, port taken)
         return _error(exc, 1)
 
 
@@ -160,18 +164,21 @@ def _worker(args: argparse.Namespace) -> int:
         return 2
     if why := _bad_listen(cfg.listen):
         return _error(why)
-    from services.policy.checkpoint import CheckpointError, inference_device, read_info
+    from services.core.runtime import OutputError, reading
+    from services.policy.checkpoint import CheckpointError, inference_device, read_info, resolve_checkpoint
     from services.policy.transport import ListenError
     from services.policy.worker import serve_worker
 
     try:
+        cfg = cfg.model_copy(update={"checkpoint": str(resolve_checkpoint(cfg.checkpoint))})  # (as serve's)
         read_info(cfg.checkpoint)
         inference_device(cfg.device, cfg.precision)  # before it listens: a one-line error, not a traceback
     except (CheckpointError, ValueError, OSError) as exc:
         return _error(exc)
     try:
-        return _run(lambda stop: serve_worker(cfg, stop, _announce))
-    except (CheckpointError, ListenError) as exc:  # its port taken; the weights, read once it listens
+        with reading(cfg.checkpoint, "policy worker"):  # kept by its run's training while it serves
+            return _run(lambda stop: serve_worker(cfg, stop, _announce))
+    except (CheckpointError, ListenError, OutputError) as exc:  # its port taken; the weights, read once it listens
         return _error(exc, 1)
 
 

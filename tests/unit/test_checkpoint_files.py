@@ -25,6 +25,27 @@ def test_a_save_keeps_the_newest_and_drops_the_folders_of_cut_saves(tmp_path):
     assert latest_checkpoint(run).name == "step_0000004"
 
 
+def test_a_served_checkpoint_is_kept_until_its_server_ends(tmp_path):
+    """A policy server (and its workers) hold their checkpoint for reading while they serve; a
+    worker started again loads it again (before: the run's next saves removed it under them)."""
+    from services.core.runtime import reading
+
+    run = tmp_path / "run"
+    served = _save(run, 1)
+    with reading(served, "policy server"):
+        _save(run, 2)
+        _save(run, 3)
+        _save(run, 4)
+        assert sorted(p.name for p in (run / "checkpoints").iterdir() if p.is_dir()) == [
+            "step_0000001",
+            "step_0000003",
+            "step_0000004",
+        ]
+        assert (served / "model.safetensors").is_file()
+    _save(run, 5)  # nothing serves it any more: the next save removes it
+    assert sorted(p.name for p in (run / "checkpoints").iterdir() if p.is_dir()) == ["step_0000004", "step_0000005"]
+
+
 def test_resolving_a_checkpoint_says_what_the_path_is_instead(tmp_path):
     import pytest
 
