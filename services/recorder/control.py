@@ -70,7 +70,11 @@ def describe_reply(action: str, reply: EpisodeReply) -> str:
     m = reply.meta
     state = "recording" if reply.recording else "idle"
     text = f"{action}: ok ({state})" + (f" episode {m.episode_id}" if m.episode_id else "")
-    if m.path:
+    if reply.recording:  # open: where it goes, what it holds so far, and what is wrong already
+        if m.path:
+            text += f"\n  -> {m.path}" + (f": {m.ticks} ticks so far, frames {dict(m.frames)}" if m.ticks else "")
+        text += "".join(f"\n  warning: {flag}" for flag in m.flags)
+    elif m.path:
         text += (
             f"\n  {m.path}: {m.ticks} ticks, {m.achieved_hz:.1f} Hz, frames {dict(m.frames)}, "
             f"drops {sum(m.drops.values())}" + (f", flags: {'; '.join(m.flags)}" if m.flags else "")

@@ -8,8 +8,9 @@ clipped ticks (the safety layer changed the command) and fault ticks (the arm co
 protective stop, a lost connection; ``AppliedAction.fault``).
 
 Flags, in this order: events (liveliness losses and restarts, write errors) as they happened;
-``low rate`` when the robot state arrived below ``min_rate_fraction`` of the control rate (real
-time only: a lockstep session runs as fast as the machine goes, so its rate says nothing);
+``empty`` when no robot state was recorded at all, else ``low rate`` when the robot state arrived
+below ``min_rate_fraction`` of the control rate (real time only: a lockstep session runs as fast
+as the machine goes, so its rate says nothing);
 recorder queue drops; malformed payloads; publisher restarts; sequence gaps not explained by
 our own drops; robot faults; stale ticks; clipped ticks; fewer robot states than the ticks the
 source says it published; a camera whose frame count differs from the tick count; a publisher
@@ -188,7 +189,9 @@ def episode_meta(
     flags = list(ep.events)
     hz = ep.meta.control_hz
     floor = min_rate_fraction * hz
-    if hz > 0 and not ep.meta.lockstep and meta.achieved_hz < floor:
+    if states == 0:  # (before: "low rate: robot state at 0.00 Hz", for an arm that never published)
+        flags.append(f"empty: no {ROBOT_STATE.key} recorded (no robot service or sim publishing it on this bus?)")
+    elif hz > 0 and not ep.meta.lockstep and meta.achieved_hz < floor:
         flags.append(f"low rate: robot state at {meta.achieved_hz:.2f} Hz < {min_rate_fraction:g} x {hz:g} Hz")
     if drops:
         flags.append(f"drops: recorder queues overflowed ({fmt_counts(drops)})")

@@ -108,6 +108,8 @@ class Recorder:
         self._calibration: dict[str, tuple[Received, Message]] = {}  # key -> latest good sample
         self._commands: queue.SimpleQueue[tuple[Callable[[], EpisodeReply | None], Future]] = queue.SimpleQueue()
         self._alive_events: queue.SimpleQueue[tuple[str, bool, int]] = queue.SimpleQueue()
+        self._live: set[str] = set()  # the services whose liveliness tokens are on the bus now
+        self._live_lock = threading.Lock()
         self._wake = threading.Event()
         self._halt = threading.Event()
         self._thread = threading.Thread(target=self._run, name="recorder-writer", daemon=True)
@@ -210,6 +212,8 @@ class Recorder:
         self._wake.set()
 
     def _on_alive(self, service: str, alive: bool) -> None:
+        with self._live_lock:
+            (self._live.add if alive else self._live.discard)(service)
         if service != self.name:
             self._alive_events.put((service, alive, now_ns()))
             self._wake.set()
@@ -308,7 +312,16 @@ class Recorder:
             req.control_hz,
             writer.part_path,
         )
-        return EpisodeReply(ok=True, recording=True, meta=self._meta(ep))
+        meta = self._meta(ep)
+        del meta.flags[:]  # (nothing is recorded yet: what a closed episode is flagged for says nothing)
+        with self._live_lock:
+            arm = self._live & {"robot", "sim"}
+        if not arm:  # (before: an episode of no arm state was recorded, and said so only at STOP)
+            meta.flags.append(
+                f"no robot service or sim on this bus (namespace {self.bus.cfg.namespace!r}): the episode "
+                "records no arm state until one starts"
+            )
+        return EpisodeReply(ok=True, recording=True, meta=meta)
 
     def _stop(self, req: EpisodeRequest, fut: Future) -> EpisodeReply | None:
         bad = self._check_id(req)

@@ -9,6 +9,8 @@ from pathlib import Path
 
 import pytest
 
+from services.core.bus import Bus, BusConfig
+
 ROOT = Path(__file__).resolve().parents[2]
 
 
@@ -44,13 +46,20 @@ def test_start_status_stop_and_errors(zenoh_endpoint, tmp_path):
         assert rec.stdout.readline().startswith("ready recorder")
         started = cli(zenoh_endpoint, "start", "--id", "by-hand", "--task", "pour", "--rig", "five15")
         assert started.returncode == 0, started.stderr
-        assert "recording" in started.stdout
+        # where it goes, and that no arm is there to record (before: "0 ticks, 0.0 Hz, ... flags: low
+        # rate: robot state at 0.00 Hz", the flags of a closed episode, for one just started)
+        assert started.stdout.splitlines()[1:] == [
+            f"  -> {tmp_path / 'by-hand.mcap'}",
+            "  warning: no robot service or sim on this bus (namespace 'vs'): the episode records no arm "
+            "state until one starts",
+        ], started.stdout
         again = cli(zenoh_endpoint, "start", "--id", "other")
         assert again.returncode == 2 and again.stderr.startswith("error:")
         assert "recording" in cli(zenoh_endpoint, "status").stdout
         stopped = cli(zenoh_endpoint, "stop", "--id", "by-hand")
         assert stopped.returncode == 0, stopped.stderr
         assert "by-hand" in stopped.stdout
+        assert "flags: empty: no robot/state recorded (no robot service or sim publishing it" in stopped.stdout
         assert (tmp_path / "by-hand.mcap").exists()
         assert cli(zenoh_endpoint, "stop").returncode == 2  # nothing is recording now
         discard = cli(zenoh_endpoint, "discard")  # (before: "invalid episode id ''")
@@ -59,8 +68,12 @@ def test_start_status_stop_and_errors(zenoh_endpoint, tmp_path):
             "error: not recording; a DISCARD with an episode id deletes that finished episode"
         )
         # neither --task nor --rig (before: the id '--<time>' was refused as invalid)
+        arm = Bus(BusConfig(mode="client", connect=[zenoh_endpoint]))
+        arm.announce("robot")  # an arm on the bus now: no warning
         plain = cli(zenoh_endpoint, "start")
+        arm.close()
         assert plain.returncode == 0, plain.stderr
+        assert "warning" not in plain.stdout, plain.stdout
         assert re.search(r"episode episode-\d{8}T\d{6}\.\d{3}\n", plain.stdout), plain.stdout
         assert cli(zenoh_endpoint, "discard").returncode == 0
     finally:

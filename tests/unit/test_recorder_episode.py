@@ -149,3 +149,12 @@ def test_clock_flags_take_the_quickest_delivery_per_topic():
         " camera/F/image stamped up to 25",
         " robot/state reached the recorder 600",
     ]
+
+
+def test_an_episode_without_robot_states_is_flagged_empty_not_slow():
+    ep = opened()
+    ep.count("camera/F/image", object(), T0, T0 + 1_000_000)
+    assert list(meta(ep).flags) == [
+        "empty: no robot/state recorded (no robot service or sim publishing it on this bus?)",
+        "camera F: 1 frames for 0 ticks",
+    ]
