@@ -43,7 +43,7 @@ from services.dataset.episodes import (
 )
 from services.dataset.pseudo_demos import PseudoDemo, chunk_starts, longest_segment, make_pseudo_demo, no_chunk_fits
 from services.dataset.store import CONTACT_SHEET, EPISODES, MANIFEST, META, NORMALIZER, SUMMARY, VERSION, DatasetError
-from services.dataset.summary import ACTION_LAYOUT, FAILED, ROLLOUT, left_out_lines, summarise
+from services.dataset.summary import ACTION_LAYOUT, EMPTY, FAILED, ROLLOUT, left_out_lines, summarise
 from services.recorder.reader import EpisodeReadError, read_episode
 from services.recorder.writer import PART_SUFFIX
 
@@ -216,8 +216,9 @@ def demonstrations(
 ) -> tuple[list[Path], list[dict[str, str]], dict[Path, dict[str, Any]]]:
     """The episode files to learn from, the others as {file, episode, reason}, and the metadata of
     those kept. Left out: not marked successful (a demonstration stopped as a failure, an
-    evaluation's failed rollout, a recovered episode nobody stopped), or driven by a policy (a
-    rollout, successful or not: what the policy already does, not a demonstration). Only each
+    evaluation's failed rollout, a recovered episode nobody stopped), driven by a policy (a
+    rollout, successful or not: what the policy already does, not a demonstration), or holding
+    no robot state (started and stopped with no arm on the bus). Only each
     file's metadata is read; a file whose metadata cannot be read is kept, so that the build
     reports it (or --skip-bad skips it)."""
     kept: list[Path] = []
@@ -234,6 +235,7 @@ def demonstrations(
             for reason, leave in (
                 (FAILED, not md.get("success") and not include_failed),
                 (ROLLOUT, POLICY_SOURCE in md.get("command_sources", []) and not include_rollouts),
+                (EMPTY, md.get("ticks") == 0),  # (before: the whole build failed on it, 'no frames of camera')
             )
             if leave
         ]

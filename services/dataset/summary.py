@@ -18,15 +18,17 @@ from services.dataset.store import EPISODES
 # why an episode is left out of a build: its reason, and the flag that builds it anyway
 FAILED = "not marked successful"  # --include-failed
 ROLLOUT = "driven by a policy"  # --include-rollouts
+EMPTY = "with no robot state recorded"  # (no flag: nothing to learn from)
 
 
 def left_out_lines(left_out: Sequence[dict[str, str]], head: str = "left out ") -> list[str]:
     """One line per reason: how many episodes, which, and the flag that builds them anyway."""
     lines = []
-    for reason, flag in ((FAILED, "--include-failed"), (ROLLOUT, "--include-rollouts")):
+    for reason, flag in ((FAILED, "--include-failed"), (ROLLOUT, "--include-rollouts"), (EMPTY, None)):
         ids = [x["episode"] for x in left_out if reason in x["reason"]]
         if ids:
-            lines.append(f"{head}{len(ids)} episodes {reason} ({first_few(ids, 5)}): {flag} builds them")
+            then = f"{flag} builds them" if flag else "nothing to learn from (no robot service or sim ran?)"
+            lines.append(f"{head}{len(ids)} episodes {reason} ({first_few(ids, 5)}): {then}")
     return lines
 
 

@@ -30,6 +30,8 @@ def trajectory(n: int, seed: int = 0, hold: tuple[int, ...] = (), scale: float =
     Ticks in ``hold`` are stale: the robot held still with the gripper where it was; ``scale``
     multiplies every motion.
     """
+    if n == 0:  # (an episode that recorded no tick)
+        return np.zeros((0, 7)), np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros(0)
     rng = np.random.default_rng(seed)
     t = np.arange(n)
     dp = np.c_[0.006 * np.cos(t / 6 + seed), 0.006 * np.sin(t / 5 + seed), -0.002 * np.cos(t / 9)]

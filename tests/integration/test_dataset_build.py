@@ -588,6 +588,8 @@ def test_failed_episodes_and_policy_rollouts_are_left_out_unless_asked_for(tmp_p
     rollouts = raw / "eval" / "rollouts"
     write_episode(rollouts, "rollout-ok", 24, cameras=["F"], seed=3, command_sources=["policy"])
     write_episode(rollouts, "rollout-failed", 24, cameras=["F"], seed=4, success=False, command_sources=["policy"])
+    # started and stopped with no arm on the bus (before: the whole build failed, 'no frames of camera F')
+    write_episode(raw, "no-arm", 0, cameras=["F"], seed=5)
     out = tmp_path / "ds"
 
     def build(*extra: str) -> tuple[int, str, str]:
@@ -602,13 +604,15 @@ def test_failed_episodes_and_policy_rollouts_are_left_out_unless_asked_for(tmp_p
     assert rc == 0, err
     failed = "2 episodes not marked successful (rollout-failed, stopped-failed): --include-failed builds them"
     rollout = "2 episodes driven by a policy (rollout-failed, rollout-ok): --include-rollouts builds them"
-    assert f"left out {failed}" in err and f"left out {rollout}" in err
+    empty = "1 episodes with no robot state recorded (no-arm): nothing to learn from (no robot service or sim ran?)"
+    assert f"left out {failed}" in err and f"left out {rollout}" in err and f"left out {empty}" in err
     assert f"  left out      {failed}" in text and f"  left out      {rollout}" in text
     assert built() == ["good-0", "good-1"]
     assert {x["episode"]: x["reason"] for x in DatasetStore(out).summary["left_out_episodes"]} == {
         "stopped-failed": "not marked successful",
         "rollout-ok": "driven by a policy",
         "rollout-failed": "not marked successful, driven by a policy",
+        "no-arm": "with no robot state recorded",
     }
     rc, text, err = build()  # nothing changed: up to date, and still says what it leaves out
     assert rc == 0 and "up to date" in text and "rollout-ok" in text
@@ -617,7 +621,10 @@ def test_failed_episodes_and_policy_rollouts_are_left_out_unless_asked_for(tmp_p
     rc, text, err = build("--include-rollouts")
     assert rc == 0 and built() == ["good-0", "good-1", "rollout-ok"], err
     rc, text, err = build("--include-failed", "--include-rollouts")
-    assert rc == 0 and "left out" not in text + err
+    assert (
+        rc == 0
+        and [x.split("left out")[1].strip() for x in (text + err).splitlines() if "left out" in x] == [empty] * 2
+    )
     assert built() == ["good-0", "good-1", "rollout-failed", "rollout-ok", "stopped-failed"]
     assert DatasetStore(out).summary["successful_episodes"] == 3
     from services.dataset.build import POLICY_SOURCE
