@@ -197,8 +197,13 @@ def _rerender(args: argparse.Namespace) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     done = result.written
+    kept = [e for e in done if e.kept]
     if done:
-        print(f"re-rendered {len(done)} of {len(result.episodes)} episodes through {args.rig} -> {args.out}")
+        print(
+            f"re-rendered {len(done) - len(kept)} of {len(result.episodes)} episodes through {args.rig}"
+            + (f" ({len(kept)} re-rendered before, kept)" if kept else "")
+            + f" -> {args.out}"
+        )
     else:
         print(f"re-rendered none of {len(result.episodes)} episodes through {args.rig}: nothing written to {args.out}")
     for e in result.episodes:

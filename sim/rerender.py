@@ -11,7 +11,9 @@ source file) and, of course, the cameras. So every row of a table can use the sa
 demonstrations, and a new camera layout can be tried without collecting again.
 
 An episode whose replay leaves the recorded trajectory (more than ``tolerance_m``), or that has no
-seed or task, is refused with its reason; the others go on.
+seed or task, is refused with its reason; the others go on. One that an earlier run re-rendered
+into ``out`` from the same file at the same size is kept, so that a run over a folder that gained
+episodes renders only the new ones.
 """
 
 from __future__ import annotations
@@ -50,6 +52,21 @@ class Rerendered:
     ticks: int = 0
     max_deviation_m: float = 0.0
     error: str = ""
+    kept: bool = False  # re-rendered by an earlier run, from the same file at the same size
+
+
+def _done_before(path: Path, src: Path, size: int, cameras: list[str]) -> Rerendered | None:
+    """The episode at ``path`` when an earlier run re-rendered it from ``src`` at ``size`` (a run
+    over a folder that gained episodes renders only the new ones), else None."""
+    calibration = [topics.camera_calibration(c).mcap_topic for c in cameras]
+    try:
+        ep = read_episode(path, topics=calibration)  # (not its frames)
+    except EpisodeReadError:
+        return None
+    cals = [r.msg for t in calibration for r in ep.messages(t)]
+    if ep.metadata.get("rerendered_from") != str(src.resolve()) or not cals or int(cals[0].width) != size:
+        return None
+    return Rerendered(src, path=path, ticks=int(ep.metadata.get("ticks") or 0), kept=True)
 
 
 @dataclass
@@ -85,7 +102,12 @@ def rerender_episode(
     out_dir.mkdir(parents=True, exist_ok=True)
     path = out_dir / f"{episode_id}.mcap"
     if path.exists():
-        raise RerenderError(f"{path} already exists")
+        done = _done_before(path, src, size, list(rig.cameras))
+        if done is not None:
+            return done
+        raise RerenderError(
+            f"{path} already exists, re-rendered from another file or at another size: move it away to render it again"
+        )
     meta = EpisodeMeta(
         episode_id=episode_id,
         task=task,
@@ -185,6 +207,9 @@ def rerender(
             progress(f"[{i}/{len(sources)}] {src.name}: SKIPPED: {exc}")
             continue
         result.episodes.append(done)
+        if done.kept:
+            progress(f"[{i}/{len(sources)}] {src.name}: re-rendered before, kept -> {done.path}")
+            continue
         progress(
             f"[{i}/{len(sources)}] {src.name}: {done.ticks} ticks through {rig} in "
             f"{time.perf_counter() - t0:.1f} s (replay within {done.max_deviation_m:.1e} m) -> {done.path}"

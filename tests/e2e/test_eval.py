@@ -186,6 +186,15 @@ def test_rerendered_episodes_read_and_build_like_collected_ones(sim_dataset, tmp
         assert a.shape == b.shape and np.abs(a - b).mean() > 5
     build_dataset(out, tmp_path / "ds", BuildParams(views=("F", "FL30", "FR30"), image_size=(32, 32)))
     assert DatasetStore(tmp_path / "ds").summary["pseudo_demos"] == 6
+    # run again (as over a folder that gained episodes): what was rendered is kept, not an error
+    # (before: each was 'SKIPPED: ... already exists', exit 1)
+    mtimes = {p: p.stat().st_mtime_ns for p in made}
+    again = viewscale("rerender", "--raw", str(raw), "--rig", "three30", "--out", str(out))
+    assert again.returncode == 0, again.stdout[-2000:] + again.stderr[-2000:]
+    assert f"re-rendered 0 of 2 episodes through three30 (2 re-rendered before, kept) -> {out}" in again.stdout
+    assert {p: p.stat().st_mtime_ns for p in made} == mtimes  # not written again
+    other = viewscale("rerender", "--raw", str(raw), "--rig", "three30", "--out", str(out), "--size", "40")
+    assert other.returncode == 1 and "re-rendered from another file or at another size" in other.stdout
 
 
 def test_rerender_refuses_bad_arguments_before_writing_anything(sim_dataset, tmp_path, capsys):
