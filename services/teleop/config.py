@@ -96,6 +96,9 @@ class TeleopConfig(Frozen):
     driver: TELEOP_DRIVERS.config_type() = ScriptedTeleopConfig()  # {type: scripted} or {type: package.module:Class}
     task_state_wait_s: float = Field(0.05, ge=0)  # how long to wait for a tick's task state after its robot state
     frame_wait_s: float = Field(0.05, ge=0)  # how long to wait for the cameras' frames of a tick (policy drivers)
+    # a camera that sent no frame for this long has stalled or gone: no command (the arm holds still)
+    # until it sends again, rather than a policy driving on its last frame (policy drivers)
+    max_frame_gap_s: float = Field(1.0, gt=0)
     log_level: LogLevel = "INFO"  # logging level of the process
 
     @model_validator(mode="after")

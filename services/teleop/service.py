@@ -11,6 +11,7 @@ Malformed payloads are counted and logged, never fatal.
 from __future__ import annotations
 
 import logging
+import re
 import threading
 import time
 from collections import Counter, OrderedDict, deque
@@ -54,6 +55,8 @@ class TeleopService:
         if driver.needs_task_state:
             bus.subscribe(topics.TASK_STATE, self._on_task, on_error=self._on_malformed)
         self._frames: dict[str, deque[CameraFrame]] = {c: deque(maxlen=8) for c in driver.cameras}
+        self._frame_rx: dict[str, int] = {}  # camera -> when its newest frame arrived (ns)
+        self._last_failure = ("", 0.0)  # (reason, monotonic time): one repeated every tick is logged once a second
         for cam in driver.cameras:
             bus.subscribe(topics.camera_image(cam), self._on_frame, on_error=self._on_malformed)
         driver.attach(bus)
@@ -98,6 +101,7 @@ class TeleopService:
             return
         with self._cv:
             self._frames[name].append(CameraFrame(bytes(msg.data), msg.timestamp.ToNanoseconds()))
+            self._frame_rx[name] = rx.receive_ns
             self._cv.notify_all()
 
     def _frames_for(self, stamp_ns: int) -> dict[str, CameraFrame]:
@@ -129,6 +133,27 @@ class TeleopService:
                 self._cv.wait(remaining)
             return state, self._tasks.get(key), self._frames_for(stamp)
 
+    def _check_frames_arrive(self) -> None:
+        """ValueError naming each camera that sent nothing for ``max_frame_gap_s``: its newest frame
+        is older every tick (unplugged, its service gone), and a policy would drive on it blind."""
+        now = now_ns()
+        with self._cv:
+            gaps = {c: (now - self._frame_rx[c]) / 1e9 for c in self.driver.cameras if c in self._frame_rx}
+        stalled = [f"{c} for {gap:.1f} s" for c, gap in gaps.items() if gap > self.cfg.max_frame_gap_s]
+        if stalled:
+            raise ValueError(
+                f"no new frame from camera {', '.join(stalled)} (stalled, unplugged, or its service gone?): "
+                "no command until it sends again"
+            )
+
+    def _log_failure(self, text: str, reason: str) -> None:
+        """Log a failed tick; the same reason again within a second is not logged again."""
+        last, when = self._last_failure
+        key = re.sub(r"\d+(\.\d+)?", "#", reason)  # (a gap that grows every tick is the same reason)
+        if key != last or time.monotonic() - when > 1.0:
+            log.warning("%s", text)
+            self._last_failure = (key, time.monotonic())
+
     def run(self, stop: threading.Event) -> None:
         while not stop.is_set():
             item = self._next(stop)
@@ -142,10 +167,11 @@ class TeleopService:
                 missing = [c for c in self.driver.cameras if c not in frames]
                 if missing:
                     raise ValueError(f"no frame from camera {', '.join(missing)} yet")
+                self._check_frames_arrive()
                 delta = self.driver.act(state, task, frames)
             except Exception as exc:  # no command: the robot holds still and flags the tick stale
                 self.errors += 1
-                log.warning("teleop driver failed at tick %d of %s: %s", state.tick, state.episode_id, exc)
+                self._log_failure(f"teleop driver failed at tick {state.tick} of {state.episode_id}: {exc}", str(exc))
                 continue
             self._seq += 1
             self._pub.put(
