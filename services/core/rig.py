@@ -426,6 +426,14 @@ def placeholder_rig(names: list[str]) -> Rig:
     return Rig(RigSpec(name="uncalibrated", cameras={n: CameraSpec() for n in names}))
 
 
+def _no_rig_file(path: Path) -> str:
+    return (
+        f"no rig file {path}: calibrate the cameras to write it (`viewscale calibrate capture`, then "
+        f"`viewscale calibrate rig ... --out {path}`: README, Calibration), or name a preset "
+        f"({', '.join(available_rigs())})"
+    )
+
+
 def load_rig(name_or_path: str, task: str | None = None) -> Rig:
     """A preset name (``five15``) or a path to a rig YAML, framed for ``task`` if one is given."""
     path = Path(name_or_path)
@@ -435,11 +443,10 @@ def load_rig(name_or_path: str, task: str | None = None) -> Rig:
         is_path = "/" in name_or_path
         path = Path(f"{name_or_path}.yaml") if is_path else RIG_DIR / f"{name_or_path}.yaml"
         if not path.is_file():
-            raise ConfigError(
-                f"no rig file {path}"
-                if is_path
-                else f"unknown rig {name_or_path!r}; presets: {', '.join(available_rigs())}"
-            )
+            unknown = f"unknown rig {name_or_path!r}; presets: {', '.join(available_rigs())}"
+            raise ConfigError(_no_rig_file(path) if is_path else unknown)
+    elif not path.exists():  # (before: "config file deploy/rig-calibrated.yaml does not exist", no way on)
+        raise ConfigError(_no_rig_file(path))
     data = read_yaml(path)
     data.setdefault("name", path.stem)
     try:

@@ -200,7 +200,8 @@ def run_check(
         except ConfigError as exc:
             if "calibration" in parts:  # (--only cameras: before the rig file is written, not a failure)
                 why = f"camera.rig {cam_cfg.rig!r}: {_describe_error(exc)}"
-                findings.append(Finding("calibration", False, f"{why} (write one with `viewscale calibrate rig`)"))
+                how = "" if "calibrate rig" in why else " (write one with `viewscale calibrate rig`)"
+                findings.append(Finding("calibration", False, why + how))
             parts.discard("calibration")
             # cameras are checked before they are calibrated too (before: left out without a line)
             rig = stand_in_rig(cam_cfg)

@@ -82,8 +82,13 @@ def test_unknown_rig_names_the_presets(tmp_path, monkeypatch):
     (tmp_path / "deploy").mkdir()
     (tmp_path / "deploy" / "lab.yaml").write_text(good.read_text())
     assert load_rig("deploy/lab").names == load_rig("three15").names
-    with pytest.raises(ConfigError, match=r"^no rig file deploy/other\.yaml$"):
+    with pytest.raises(ConfigError, match=r"^no rig file deploy/other\.yaml: calibrate the cameras to write it"):
         load_rig("deploy/other")
+    # a rig file's full name (before: "config file deploy/rig-calibrated.yaml does not exist", no way on)
+    with pytest.raises(
+        ConfigError, match=r"^no rig file deploy/x\.yaml: .*`viewscale calibrate rig \.\.\. --out deploy/x\.yaml`"
+    ):
+        load_rig("deploy/x.yaml")
 
 
 # -- framing: what the policy can see at 84 x 84 -------------------------------------------------
