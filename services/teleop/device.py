@@ -97,8 +97,9 @@ class EpisodeKeys:
         else:
             reply = self._send("stop", success=action == "stop_success")
         self.replies.append((action, reply))
-        if reply.ok:
-            log.info("episode key %s: %s", action, describe_reply(action, reply))
+        if reply.ok:  # (a start's warnings, as `viewscale episode start` prints them: a warning here too)
+            level = logging.WARNING if reply.recording and reply.meta.flags else logging.INFO
+            log.log(level, "episode key %s: %s", action, describe_reply(action, reply))
         else:
             log.warning("episode key %s refused by the recorder: %s", action, reply.error)
 

@@ -396,7 +396,7 @@ def test_spacemouse_config_errors(spacemouse, monkeypatch):
 # -- episode keys drive a real recorder ---------------------------------------------------------
 
 
-def test_episode_keys_drive_the_recorder(zenoh_endpoint, pty, spacemouse, tmp_path):
+def test_episode_keys_drive_the_recorder(zenoh_endpoint, pty, spacemouse, tmp_path, caplog):
     master, _slave, path = pty
     bus_cfg = BusConfig(mode="client", connect=[zenoh_endpoint])
     out = tmp_path / "episodes"
@@ -425,6 +425,9 @@ def test_episode_keys_drive_the_recorder(zenoh_endpoint, pty, spacemouse, tmp_pa
         assert action == "start" and reply.ok, reply.error
         episode = reply.meta.episode_id
         assert episode.startswith("pour-five15-") and status().recording
+        # no robot service announced on this bus: the operator's log warns (before: at INFO, among the rest)
+        warned = [r for r in caplog.records if r.levelname == "WARNING" and "episode key start" in r.getMessage()]
+        assert warned and "warning: no robot service or sim on this bus" in warned[0].getMessage()
 
         # while recording, a key moves the arm through the service: robot state in, command out
         commands: list[EefCommand] = []
