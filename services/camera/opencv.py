@@ -209,6 +209,9 @@ class OpenCVCamera(CaptureCameras):
 
     @classmethod
     def from_config(cls, cfg: OpenCVCameraConfig, *, rig: Rig, width: int, height: int) -> OpenCVCamera:
+        # OpenCV's own warnings (`[ WARN:0@0.2] global cap.cpp:212 open VIDEOIO(FFMPEG): ...` on a
+        # source it cannot open) went to stderr beside ours, which say the same in plain words
+        cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
         streams = {name: OpenCVStream(name, spec, cfg) for name, spec in cfg.cameras.items()}
         driver = cls(streams, cfg, rig=rig, width=width, height=height)
         driver.start()

@@ -129,3 +129,26 @@ def test_cameras_are_checked_before_their_rig_file_is_written(tmp_path):
         "check", "--config", str(sim_config(tmp_path, rig=str(tmp_path / "lab.yaml"))), "--only", "cameras,calibration"
     )
     assert proc.returncode == 1 and "FAIL  cameras        sim: not checked: they need camera.rig" in proc.stdout
+
+
+def test_a_stream_that_refuses_is_said_once_in_plain_words(tmp_path):
+    """(OpenCV's own `[ WARN:0@0.2] global cap.cpp:212 open VIDEOIO(FFMPEG): backend is generally
+    available but can't be used to capture by name` came first on stderr)"""
+    cfg = tmp_path / "lab.yaml"
+    cfg.write_text(
+        yaml.safe_dump(
+            {
+                "world": "real",
+                "camera": {
+                    "rig": "front",
+                    "driver": {"type": "opencv", "cameras": {"F": {"source": "rtsp://127.0.0.1:1/x"}}},
+                },
+            }
+        )
+    )
+    proc = viewscale("check", "--config", str(cfg), "--only", "cameras")
+    assert (
+        proc.returncode == 1
+        and "FAIL  cameras        opencv: camera F: cannot open rtsp://127.0.0.1:1/x" in proc.stdout
+    )
+    assert "WARN" not in proc.stdout + proc.stderr, proc.stderr
