@@ -293,6 +293,10 @@ def reading(path: str | os.PathLike, what: str) -> Iterator[None]:
             raise OutputError(
                 f"{path} is being written" + (f" ({holder})" if holder else "") + ": wait for it to end"
             ) from None
+        except OSError:  # a file system without locks (ENOLCK): read without one
+            fh.close()
+            yield
+            return
         try:
             same = os.stat(lock).st_ino == os.fstat(fh.fileno()).st_ino
         except FileNotFoundError:
@@ -301,9 +305,12 @@ def reading(path: str | os.PathLike, what: str) -> Iterator[None]:
             break
         fh.close()  # a writer removed it while we opened it: take the new one
     try:
-        fh.truncate(0)  # (several readers: the last one to start is named)
-        fh.write(f"{READ_BY} a {what} (pid {os.getpid()} on {socket.gethostname()})\n")
-        fh.flush()
+        try:  # (several readers: the last one to start is named)
+            fh.truncate(0)
+            fh.write(f"{READ_BY} a {what} (pid {os.getpid()} on {socket.gethostname()})\n")
+            fh.flush()
+        except OSError:  # a full disk: the lock holds without its note
+            pass
         yield
     finally:
         try:  # the last reader removes the lock file (one that gets the lock to itself)
