@@ -167,24 +167,34 @@ def save_checkpoint(
 ) -> Path:
     """Write one checkpoint folder, then point ``latest`` at it, then drop the oldest beyond ``keep``
     and the ``.partial`` folders of saves that were cut short (a run stopped at once mid-save)."""
+    from safetensors import SafetensorError
     from safetensors.torch import save_file
 
     path = checkpoint_dir(run_dir, step)
     tmp = path.with_name(path.name + ".partial")
     shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir(parents=True)
-    save_file(_contiguous(serve_state), str(tmp / MODEL_FILE), metadata={"format": FORMAT})
-    _write_json(tmp / POLICY_FILE, {"format": FORMAT, "version": VERSION, "step": step, **info})
-    save_file(_contiguous(train_tensors), str(tmp / STATE_FILE))
-    for name in (MODEL_FILE, STATE_FILE):
-        _mode_by_umask(tmp / name)
-    _write_json(tmp / STATE_JSON, {"step": step, **train_json})
-    shutil.rmtree(path, ignore_errors=True)
-    os.replace(tmp, path)
-    marker = path.parent / LATEST
-    marker_tmp = marker.with_name(LATEST + ".tmp")
-    marker_tmp.write_text(path.name + "\n")
-    os.replace(marker_tmp, marker)
+    try:
+        tmp.mkdir(parents=True)
+        save_file(_contiguous(serve_state), str(tmp / MODEL_FILE), metadata={"format": FORMAT})
+        _write_json(tmp / POLICY_FILE, {"format": FORMAT, "version": VERSION, "step": step, **info})
+        save_file(_contiguous(train_tensors), str(tmp / STATE_FILE))
+        for name in (MODEL_FILE, STATE_FILE):
+            _mode_by_umask(tmp / name)
+        _write_json(tmp / STATE_JSON, {"step": step, **train_json})
+        shutil.rmtree(path, ignore_errors=True)
+        os.replace(tmp, path)
+        marker = path.parent / LATEST
+        marker_tmp = marker.with_name(LATEST + ".tmp")
+        marker_tmp.write_text(path.name + "\n")
+        os.replace(marker_tmp, marker)
+    except (OSError, SafetensorError) as exc:  # a full disk, a folder gone or read-only (before: a traceback)
+        shutil.rmtree(tmp, ignore_errors=True)  # (what it wrote of this one: room again)
+        reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+        kept = latest_checkpoint(run_dir)
+        raise CheckpointError(
+            f"cannot save checkpoint {path.name} in {run_dir}: {reason}; "
+            + (f"the newest saved is {kept}: the same command resumes from it" if kept else "none is saved yet")
+        ) from exc
     done = sorted(p for p in path.parent.glob("step_*") if p.is_dir() and not p.name.endswith(".partial"))
     for old in done[:-keep]:
         if old != path:

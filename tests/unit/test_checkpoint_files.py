@@ -46,6 +46,25 @@ def test_a_served_checkpoint_is_kept_until_its_server_ends(tmp_path):
     assert sorted(p.name for p in (run / "checkpoints").iterdir() if p.is_dir()) == ["step_0000004", "step_0000005"]
 
 
+def test_a_save_that_cannot_be_written_is_one_error_naming_the_checkpoint_kept(tmp_path):
+    """(a full disk at a save: safetensors' traceback, and the training's end without a word on
+    what was kept)"""
+    import pytest
+
+    from services.policy.checkpoint import CheckpointError
+
+    run = tmp_path / "run"
+    kept = _save(run, 1)
+    blocked = run / "checkpoints" / "step_0000002.partial"
+    blocked.write_text("in the way")  # a file where the save makes its folder: an OSError, as a full disk is
+    with pytest.raises(
+        CheckpointError,
+        match=rf"^cannot save checkpoint step_0000002 in {run}: .*; the newest saved is {kept}: the same",
+    ):
+        _save(run, 2)
+    assert latest_checkpoint(run) == kept
+
+
 def test_resolving_a_checkpoint_says_what_the_path_is_instead(tmp_path):
     import pytest
 
