@@ -88,6 +88,8 @@ def _build(args: argparse.Namespace) -> int:
     except (DatasetError, EpisodeError, OutputError) as exc:
         return _err(str(exc))
     except OSError as exc:  # an unwritable output, a full disk
+        if exc.errno is None:  # numpy's short write ('677376 requested and 655232 written'): say what it means
+            return _err(f"cannot write {args.out}: {exc} (is the disk full?)")
         return _err(f"{exc.strerror or exc}: {exc.filename or args.out}")
     s = result.summary
     if args.json:
