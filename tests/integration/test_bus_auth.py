@@ -193,6 +193,10 @@ def test_the_recorder_answers_the_session_and_nobody_else(open_bus, tmp_path):
         # The operator's CLI may (viewscale episode).
         operator = open_bus("operator")
         assert EpisodeReply.FromString(operator.query(topics.EPISODE_CONTROL, status_request(), timeout=10)).ok
+        # So may the teleop: the episode keys of the SpaceMouse and the keyboard, the operator's hand
+        # (before: dropped, and the keys logged 'no answer from the recorder')
+        teleop = open_bus("teleop")
+        assert EpisodeReply.FromString(teleop.query(topics.EPISODE_CONTROL, status_request(), timeout=10)).ok
 
 
 def test_the_operator_hears_the_arms_state_for_a_hand_eye_capture(open_bus):
