@@ -46,7 +46,7 @@ ROBOT_STATE = Topic("robot/state", sensors_pb2.RobotState)
 APPLIED_ACTION = Topic("robot/applied", control_pb2.AppliedAction)
 COMMAND = Topic("teleop/command", control_pb2.EefCommand)
 TASK_STATE = Topic("sim/task", sensors_pb2.TaskState)
-EPISODE = Topic("recorder/episode", episode_pb2.EpisodeMeta)  # recorder announces finished episodes
+EPISODE = Topic("recorder/episode", episode_pb2.EpisodeMeta)  # the recorder's episodes: started (end_ns 0), closed
 TRAIN_PROGRESS = Topic("trainer/progress", trainer_pb2.TrainProgress)  # the trainer service's runs
 
 # Queryables (request/reply, protobuf both ways).

@@ -314,6 +314,11 @@ class Recorder:
         )
         meta = self._meta(ep)
         del meta.flags[:]  # (nothing is recorded yet: what a closed episode is flagged for says nothing)
+        meta.end_ns = 0  # open
+        try:  # announced as it starts (end_ns 0): a robot service names it in its states from now on
+            self._publisher.put(meta)
+        except Exception:  # the episode records all the same; a bus problem must not fail the START
+            log.exception("could not announce the start of %s", req.episode_id)
         with self._live_lock:
             arm = self._live & {"robot", "sim"}
         if not arm:  # (before: an episode of no arm state was recorded, and said so only at STOP)

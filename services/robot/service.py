@@ -1,8 +1,10 @@
 """The robot service: a RobotDriver behind the control loop, ticking from start-up.
 
-On hardware this is the process that owns the arm. With ``driver: {type: sim}`` it runs a MuJoCo arm
-without cameras (useful to exercise a teleop source); full sim collection sessions use the sim
-service instead, which runs the same loop with cameras and episode control.
+On hardware this is the process that owns the arm. Its states name the episode the recorder is
+recording (from the recorder's announcements on ``recorder/episode``), and none between episodes.
+With ``driver: {type: sim}`` it runs a MuJoCo arm without cameras (useful to exercise a teleop
+source); full sim collection sessions use the sim service instead, which runs the same loop with
+cameras and episode control.
 """
 
 from __future__ import annotations
@@ -10,8 +12,10 @@ from __future__ import annotations
 import logging
 import threading
 
+from services.core import topics
 from services.core.bus import Bus
 from services.core.runtime import refuse_rivals, serve
+from services.pb.episode_pb2 import EpisodeMeta
 from services.robot.base import RobotDriver
 from services.robot.config import ROBOT_DRIVERS, RobotConfig
 from services.robot.loop import ControlLoop
@@ -32,6 +36,17 @@ class RobotService:
         self.loop = ControlLoop(
             bus, self.robot, cfg.control_hz, cfg.realtime, cfg.command_timeout_s, cfg.command_wait_fraction
         )
+        bus.subscribe(topics.EPISODE, self._on_episode)
+
+    def _on_episode(self, meta: EpisodeMeta, _rx) -> None:
+        """The recorder's episodes: the states name the one being recorded, and none between them (a
+        policy teleop drives the arm only within an episode; the sim's session names its own)."""
+        if meta.end_ns == 0:
+            self.loop.episode_id = meta.episode_id
+            log.info("episode %s started: the states name it", meta.episode_id)
+        elif meta.episode_id == self.loop.episode_id:
+            self.loop.episode_id = ""
+            log.info("episode %s closed", meta.episode_id)
 
     def __enter__(self) -> RobotService:
         refuse_rivals(self.bus, "robot", {"robot", "sim"})  # (before: both published robot/state)

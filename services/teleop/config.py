@@ -31,6 +31,9 @@ class PolicyTeleopConfig(DriverConfig):
     connect_timeout_s: float = Field(60.0, gt=0)  # how long to wait for the server at start-up
     seed: int | None = None  # noise seed base; default: from the episode id (reproducible episodes)
     stats_file: str | None = None  # append each episode's runner statistics here (JSON lines)
+    # drive the arm between the recorder's episodes too; by default it holds still there (states
+    # that name no episode: a hardware session between `viewscale episode stop` and the next start)
+    outside_episodes: bool = False
 
 
 class DeviceTeleopConfig(DriverConfig):

@@ -7,7 +7,8 @@ Each tick it hands the tick's frames of its cameras and the robot state to a ``C
 (services/policy/client.py), which executes the policy's action chunks one action per tick,
 asks for the next chunk ahead of time, and holds still when none has come (an underrun). In a
 lockstep session (``blocking: true``) it waits for the chunk instead. The same driver drives the
-sim and a real arm: it needs nothing but the cameras and the robot state.
+sim and a real arm: it needs nothing but the cameras and the robot state. It drives only while an
+episode is recorded (states that name one); between episodes it holds the arm still.
 
 Per episode it keeps the runner's statistics (requests, latency, underruns, stale actions,
 degraded answers) and, with ``stats_file``, appends them as one JSON line when the episode ends.
@@ -107,6 +108,10 @@ class PolicyTeleop(TeleopDriver):
         log.warning("GetAction failed in %s: %s (holding still)", self.episode_id, exc)
 
     def act(self, state: RobotState, task: TaskState | None, frames: dict[str, CameraFrame]) -> EefDelta:
+        if not state.episode_id and not self.cfg.outside_episodes:
+            # no episode is being recorded (an operator resetting the scene): hold still, ask nothing
+            # (before: the policy drove a real arm from the teleop's start on, between episodes too)
+            return EefDelta(np.zeros(3), np.zeros(3), float(state.gripper))
         if self.runner is None:
             self.reset("", state.episode_id)
         now = State(np.asarray(state.eef_pos), np.asarray(state.eef_quat_wxyz), state.gripper, state.header.stamp_ns)

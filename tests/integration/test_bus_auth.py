@@ -24,7 +24,13 @@ from services.calibration.charuco import CalibrationError
 from services.core import topics
 from services.core.bus import Bus, BusConfig, Received, free_tcp_port
 from services.core.tensors import compressed_image
-from services.pb.episode_pb2 import EPISODE_COMMAND_STATUS, EpisodeReply, EpisodeRequest
+from services.pb.episode_pb2 import (
+    EPISODE_COMMAND_START,
+    EPISODE_COMMAND_STATUS,
+    EPISODE_COMMAND_STOP,
+    EpisodeReply,
+    EpisodeRequest,
+)
 from services.pb.sensors_pb2 import RobotState, TaskState
 from services.recorder.config import RecorderConfig
 from services.recorder.service import Recorder
@@ -197,6 +203,15 @@ def test_the_recorder_answers_the_session_and_nobody_else(open_bus, tmp_path):
         # (before: dropped, and the keys logged 'no answer from the recorder')
         teleop = open_bus("teleop")
         assert EpisodeReply.FromString(teleop.query(topics.EPISODE_CONTROL, status_request(), timeout=10)).ok
+        # The robot service hears the episodes start and close (its states name the one recorded)
+        heard = Heard(open_bus("robot"), "recorder/episode")
+        time.sleep(0.5)  # (the subscription reaches the router)
+        for command in (EPISODE_COMMAND_START, EPISODE_COMMAND_STOP):
+            req = EpisodeRequest(command=command, episode_id="auth-1", task="lift", control_hz=20)
+            assert EpisodeReply.FromString(
+                session.query(topics.EPISODE_CONTROL, req.SerializeToString(), timeout=10)
+            ).ok
+        wait_for(lambda: len(heard.samples) == 2, what="the start and the close on recorder/episode")
 
 
 def test_the_operator_hears_the_arms_state_for_a_hand_eye_capture(open_bus):

@@ -892,3 +892,39 @@ def test_the_chunk_runner_executes_chunks_drops_stale_actions_and_never_blocks(c
             assert live.stats.requests >= 1 and live.stats.failed == 0
     finally:
         stop(proc)
+
+
+def test_the_policy_teleop_drives_only_within_an_episode(checkpoint, observations):
+    """(on hardware it drove the arm from the teleop's start on, an operator resetting the scene
+    between two episodes included); `outside_episodes: true` drives there too."""
+    from services.pb.sensors_pb2 import RobotState
+    from services.teleop.base import CameraFrame
+    from services.teleop.config import PolicyTeleopConfig
+    from services.teleop.policy import PolicyTeleop
+
+    proc, addr = start_server(checkpoint, "--views", "F", "--in-process")
+    try:
+        frames, states = observations[3]
+        s = states[-1]
+        seen = {"F": CameraFrame(*frames["F"][-1])}
+
+        def state(episode: str) -> RobotState:
+            msg = RobotState(tick=1, eef_pos=list(s.eef_pos), eef_quat_wxyz=list(s.eef_quat_wxyz), gripper=0.4)
+            msg.header.stamp_ns, msg.episode_id = s.stamp_ns, episode
+            return msg
+
+        for outside in (False, True):
+            driver = PolicyTeleop(PolicyTeleopConfig(server=addr, blocking=True, outside_episodes=outside))
+            try:
+                between = driver.act(state(""), None, seen)
+                asked = driver.runner.stats.requests if driver.runner is not None else 0
+                assert (asked > 0) == outside, (outside, asked)
+                if not outside:  # held still, the gripper where it is: no GetAction
+                    assert not between.dp.any() and not between.drot.any() and between.gripper == 0.4
+                driver.reset("lift", "ep-1")
+                driver.act(state("ep-1"), None, seen)
+                assert driver.runner.stats.requests > 0
+            finally:
+                driver.close()
+    finally:
+        stop(proc)

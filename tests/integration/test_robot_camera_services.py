@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from polling import wait_for
 
 from services.core import topics
 from services.core.config import ConfigError
@@ -219,3 +220,32 @@ def test_a_driver_that_cannot_be_imported_is_one_line_before_any_connection(tmp_
     )
     assert proc.returncode == 2 and "Traceback" not in proc.stderr
     assert proc.stderr.strip() == "error: module 'mylab.teleop' cannot be imported: No module named 'mylab'"
+
+
+def test_robot_states_name_the_episode_the_recorder_records(zenoh_endpoint, make_bus, tmp_path):
+    """(on hardware the states named no episode at all: a policy teleop could not tell an episode
+    from an operator resetting the scene between two, and drove the arm through both)"""
+    from services.pb.episode_pb2 import EPISODE_COMMAND_START, EPISODE_COMMAND_STOP, EpisodeReply, EpisodeRequest
+    from services.recorder.config import RecorderConfig
+    from services.recorder.service import Recorder
+
+    proc = start("services.robot", zenoh_endpoint, "driver.type=sim", "control_hz=20")
+    try:
+        rec_bus, bus = make_bus(), make_bus()
+        with Recorder(RecorderConfig(bus=rec_bus.cfg, out_dir=tmp_path), rec_bus):
+            named: list[str] = []
+            bus.subscribe(topics.ROBOT_STATE, lambda msg, _rx: named.append(msg.episode_id))
+            bus.wait_alive({"robot", "recorder"}, timeout=30)
+
+            def control(command: int, **fields) -> EpisodeReply:
+                req = EpisodeRequest(command=command, **fields).SerializeToString()
+                return EpisodeReply.FromString(bus.query(topics.EPISODE_CONTROL, req, timeout=15))
+
+            wait_for(lambda: len(named) >= 5, what="states")
+            assert set(named) == {""}  # no episode yet
+            assert control(EPISODE_COMMAND_START, episode_id="ep-1", task="lift", control_hz=20).ok
+            wait_for(lambda: named[-1] == "ep-1", what="states naming the episode")
+            assert control(EPISODE_COMMAND_STOP, success=True).ok
+            wait_for(lambda: named[-1] == "", what="states naming none once it closed")
+    finally:
+        stop(proc)
