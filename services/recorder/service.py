@@ -116,6 +116,7 @@ class Recorder:
         self._episode: _Episode | None = None
         self._stopping: tuple[EpisodeRequest, Future, float] | None = None  # STOP waiting for its ticks
         self._last_meta = EpisodeMeta()  # the last closed episode, for STATUS when idle
+        self._started = (EpisodeMeta(), 0.0)  # the open episode's start announcement, and when it was last made
         self._publisher = None
         self._held = contextlib.ExitStack()  # the out_dir's lock, while open
 
@@ -315,10 +316,9 @@ class Recorder:
         meta = self._meta(ep)
         del meta.flags[:]  # (nothing is recorded yet: what a closed episode is flagged for says nothing)
         meta.end_ns = 0  # open
-        try:  # announced as it starts (end_ns 0): a robot service names it in its states from now on
-            self._publisher.put(meta)
-        except Exception:  # the episode records all the same; a bus problem must not fail the START
-            log.exception("could not announce the start of %s", req.episode_id)
+        self._started = (EpisodeMeta(), time.monotonic())
+        self._started[0].CopyFrom(meta)
+        self._announce(meta)  # a robot service names it in its states from now on
         with self._live_lock:
             arm = self._live & {"robot", "sim"}
         if not arm:  # (before: an episode of no arm state was recorded, and said so only at STOP)
@@ -400,7 +400,16 @@ class Recorder:
         self._episode = None
         log.info("episode %s discarded: deleted %s", ep.meta.episode_id, ep.writer.part_path)
         meta.path = ""
+        self._announce(meta)  # (closed, no file: a robot service's states name it no more)
         return EpisodeReply(ok=True, recording=False, meta=meta)
+
+    def _announce(self, meta: EpisodeMeta) -> None:
+        """``meta`` on ``recorder/episode``: an episode started (end_ns 0, again every second while
+        it records, for a robot service started since), closed, or discarded (no path)."""
+        try:
+            self._publisher.put(meta)
+        except Exception:  # the episode records all the same; a bus problem must not fail a command
+            log.exception("could not announce episode %s", meta.episode_id)
 
     def _status(self, req: EpisodeRequest, fut: Future) -> EpisodeReply:
         ep = self._episode
@@ -422,6 +431,9 @@ class Recorder:
                 self._poll_stop()
                 if self._episode is not None and not self._episode.error:
                     self._episode.writer.maybe_flush()
+                if self._episode is not None and time.monotonic() - self._started[1] > 1.0:
+                    self._started = (self._started[0], time.monotonic())
+                    self._announce(self._started[0])
             except Exception:  # the writer thread must outlive any single bad step
                 log.exception("recorder writer step failed")
                 busy = False
