@@ -14,6 +14,7 @@ import sys
 import threading
 from collections.abc import Iterator
 from pathlib import Path
+from typing import IO
 
 from services.core.config import ConfigError, log_level_name
 
@@ -229,6 +230,39 @@ LOCK_FILE = ".viewscale.lock"  # held in an output folder while a command writes
 READ_BY = "read by"  # what a reader writes in the lock file: ``read by a training (pid ...)``
 
 
+class _Held(Exception):
+    """The lock is held by another process; ``holder`` is what it wrote in the lock file."""
+
+    def __init__(self, holder: str):
+        super().__init__(holder)
+        self.holder = holder
+
+
+def _locked(lock: Path, mode: int) -> IO[str]:
+    """``lock`` opened (made if missing) and locked with ``mode`` (``LOCK_EX`` or ``LOCK_SH``)
+    without waiting; _Held when another process holds it, OSError when it cannot be made or
+    locked. A lock file its holder removed while we opened it is opened again (its new one)."""
+    while True:
+        fh = open(lock, "a+")
+        try:
+            fcntl.flock(fh, mode | fcntl.LOCK_NB)
+        except BlockingIOError:
+            fh.seek(0)
+            holder = fh.read().strip()
+            fh.close()
+            raise _Held(holder) from None
+        except OSError:
+            fh.close()
+            raise
+        try:
+            same = os.stat(lock).st_ino == os.fstat(fh.fileno()).st_ino
+        except FileNotFoundError:
+            same = False
+        if same:
+            return fh
+        fh.close()
+
+
 @contextlib.contextmanager
 def exclusive(path: str | os.PathLike, what: str) -> Iterator[None]:
     """Hold the lock of output folder ``path`` while a command writes in it. A second command on the
@@ -236,28 +270,16 @@ def exclusive(path: str | os.PathLike, what: str) -> Iterator[None]:
     the process that holds it, instead of both writing there. The OS drops the lock of a process
     that dies, killed or not; the lock file goes when the lock is given up."""
     lock = Path(path) / LOCK_FILE
-    while True:
-        fh = open(lock, "a+")  # held until the block ends
-        try:
-            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            fh.seek(0)
-            holder = fh.read().strip()
-            fh.close()
-            if holder.startswith(READ_BY):  # (a training reading the dataset this build would replace)
-                raise OutputError(f"{path} is {holder}: wait for it to end, or choose another folder") from None
-            raise OutputError(
-                f"{path} is in use by another {what}"
-                + (f" ({holder})" if holder else "")
-                + ": wait for it to end, or choose another folder"
-            ) from None
-        try:
-            same = os.stat(lock).st_ino == os.fstat(fh.fileno()).st_ino
-        except FileNotFoundError:
-            same = False
-        if same:
-            break
-        fh.close()  # its holder removed it while we opened it: take the lock of the new one
+    try:
+        fh = _locked(lock, fcntl.LOCK_EX)  # held until the block ends
+    except _Held as held:
+        if held.holder.startswith(READ_BY):  # (a training reading the dataset this build would replace)
+            raise OutputError(f"{path} is {held.holder}: wait for it to end, or choose another folder") from None
+        raise OutputError(
+            f"{path} is in use by another {what}"
+            + (f" ({held.holder})" if held.holder else "")
+            + ": wait for it to end, or choose another folder"
+        ) from None
     try:
         fh.seek(0)
         fh.truncate()
@@ -278,32 +300,15 @@ def reading(path: str | os.PathLike, what: str) -> Iterator[None]:
     the folder being written is refused, naming the writer. A folder where no lock file can be made
     (a dataset on a read-only mount) is read without one."""
     lock = Path(path) / LOCK_FILE
-    while True:
-        try:
-            fh = open(lock, "a+")
-        except OSError:  # read-only, or not ours to write: nothing can write there either
-            yield
-            return
-        try:
-            fcntl.flock(fh, fcntl.LOCK_SH | fcntl.LOCK_NB)
-        except BlockingIOError:
-            fh.seek(0)
-            holder = fh.read().strip()
-            fh.close()
-            raise OutputError(
-                f"{path} is being written" + (f" ({holder})" if holder else "") + ": wait for it to end"
-            ) from None
-        except OSError:  # a file system without locks (ENOLCK): read without one
-            fh.close()
-            yield
-            return
-        try:
-            same = os.stat(lock).st_ino == os.fstat(fh.fileno()).st_ino
-        except FileNotFoundError:
-            same = False
-        if same:
-            break
-        fh.close()  # a writer removed it while we opened it: take the new one
+    try:
+        fh = _locked(lock, fcntl.LOCK_SH)
+    except _Held as held:
+        raise OutputError(
+            f"{path} is being written" + (f" ({held.holder})" if held.holder else "") + ": wait for it to end"
+        ) from None
+    except OSError:  # read-only, not ours to write, or a file system without locks (ENOLCK): read without one
+        yield
+        return
     try:
         try:  # (several readers: the last one to start is named)
             fh.truncate(0)
