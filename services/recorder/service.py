@@ -584,10 +584,7 @@ class Recorder:
             "".join(f"\n  flag: {f}" for f in meta.flags),
             ep.writer.path,
         )
-        try:
-            self._publisher.put(meta)
-        except Exception:  # the file is closed; a bus problem must not turn this into a failure
-            log.exception("could not publish EpisodeMeta of %s", meta.episode_id)
+        self._announce(meta)  # (the file is closed: a bus problem does not turn this into a failure)
         return EpisodeReply(ok=True, recording=False, meta=meta)
 
 
