@@ -113,6 +113,7 @@ def _eval(args: argparse.Namespace) -> int:
             gamma=gamma,
             workers=args.workers,
             server=args.server,
+            tls_ca=args.tls_ca,
             rig=args.rig,
             size=args.size,
             realtime=args.realtime,
@@ -424,8 +425,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--gamma", help="composition weights, e.g. F=0.5,FL=0.25,FR=0.25 (default 1/V)")
     p.add_argument("--workers", type=int, default=0, help="policy worker processes (default 0: in-process)")
     p.add_argument(
-        "--server", help="evaluate a running `viewscale serve` at HOST:PORT instead of starting one (token: env)"
+        "--server",
+        help="evaluate a running `viewscale serve` at HOST:PORT instead of starting one "
+        "(its token: VIEWSCALE_DRIVER__TOKEN)",
     )
+    p.add_argument("--tls-ca", metavar="PEM", help="--server serves TLS: the CA certificate that signed its own")
     p.add_argument("--rig", help="the sim's rig (default: the checkpoint's)")
     p.add_argument("--size", type=int, help="frame size the sim renders (default: the checkpoint's)")
     p.add_argument("--realtime", action="store_true", help="run at the control rate (default lockstep)")

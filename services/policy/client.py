@@ -82,6 +82,19 @@ def _frame(image: Image, stamp_ns: int, quality: int) -> policy_pb2.Frame:
     )
 
 
+def tls_hint(error: str, tls: bool) -> str:
+    """What a connection error means when client and server disagree on TLS (gRPC names only the
+    symptom: a plaintext client's connection is closed by a TLS server, a TLS client's handshake
+    with a plaintext server fails)."""
+    if not tls and "Socket closed" in error:
+        return "; if the server serves TLS (`--set tls.cert=...`), give the client its CA certificate (tls_ca)"
+    if tls and "WRONG_VERSION_NUMBER" in error:
+        return "; the server does not serve TLS: connect without tls_ca"
+    if tls and "CERTIFICATE_VERIFY_FAILED" in error:
+        return "; the server's certificate is not signed by the CA given (tls_ca)"
+    return ""
+
+
 class PolicyClient:
     """One connection to a policy server, one session (``session_id``: one robot), reset on connect.
     Thread-safe for one call at a time per session. ``keepalive_s``: ping the server this often and
@@ -109,8 +122,12 @@ class PolicyClient:
             raise ValueError(f"jpeg_quality must be 0 (raw RGB) to 100, got {jpeg_quality}")
         if max_message_mb < 1:
             raise ValueError(f"max_message_mb must be at least 1, got {max_message_mb}")
+        if tls_ca is not None and b"-----BEGIN CERTIFICATE-----" not in tls_ca:
+            # (before: every connection failed with 'Failed to create security handshaker')
+            raise ValueError("tls_ca holds no PEM certificate (-----BEGIN CERTIFICATE-----): give the CA's certificate")
         self.address = address
         self.session_id = session_id
+        self.tls = tls_ca is not None
         self.timeout_s = timeout_s
         self.jpeg_quality = jpeg_quality  # raw numpy frames are sent as JPEG at this quality (0: raw RGB)
         self._metadata = (("authorization", f"Bearer {token}"),) if token else None
@@ -174,15 +191,15 @@ class PolicyClient:
     def _why_not(self, last: str) -> str:
         """Why the channel cannot connect. A call that waits for the connection ends in
         DEADLINE_EXCEEDED, which hides the reason; one that does not wait gets the channel's last
-        connection error (connection refused, a name that does not resolve, a bad address)."""
-        if not last.startswith("DEADLINE_EXCEEDED"):
-            return last
-        try:
-            self.stub.GetPolicyInfo(policy_pb2.PolicyInfoRequest(), timeout=1.0, metadata=self._metadata)
-        except grpc.RpcError as exc:
-            if exc.code() != grpc.StatusCode.DEADLINE_EXCEEDED:
-                return f"{exc.code().name}: {exc.details()}"
-        return last
+        connection error (connection refused, a name that does not resolve, a bad address), with
+        what it means when the two ends disagree on TLS."""
+        if last.startswith("DEADLINE_EXCEEDED"):
+            try:
+                self.stub.GetPolicyInfo(policy_pb2.PolicyInfoRequest(), timeout=1.0, metadata=self._metadata)
+            except grpc.RpcError as exc:
+                if exc.code() != grpc.StatusCode.DEADLINE_EXCEEDED:
+                    last = f"{exc.code().name}: {exc.details()}"
+        return last + tls_hint(last, self.tls)
 
     def _wait_serving(self, deadline: float, timeout_s: float) -> None:
         health = health_pb2_grpc.HealthStub(self.channel)

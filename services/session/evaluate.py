@@ -64,6 +64,7 @@ class EvalSpec:
     gamma: dict[str, float] | None = None
     workers: int = 0  # policy worker processes (0: in-process)
     server: str | None = None  # a running `viewscale serve` (host:port) instead of starting one
+    tls_ca: str | None = None  # that server serves TLS: the PEM file of the CA that signed its certificate
     rig: str | None = None  # default: the checkpoint's
     size: int | None = None  # frame size the sim renders (default: the checkpoint's cameras')
     realtime: bool = False
@@ -95,16 +96,24 @@ def _checkpoint_facts(path: str) -> dict[str, Any]:
     }
 
 
-def _server_facts(address: str, timeout_s: float = 15.0) -> dict[str, Any]:
+def _server_facts(address: str, tls_ca: str | None = None, timeout_s: float = 15.0) -> dict[str, Any]:
     """What the evaluation needs, asked of a running policy server (GetPolicyInfo)."""
     from services.policy.client import PolicyClient, PolicyError
 
     token = os.environ.get("VIEWSCALE_DRIVER__TOKEN")
     try:
-        with PolicyClient(address, session_id="eval-info", token=token, connect_timeout_s=timeout_s) as client:
+        ca = Path(tls_ca).read_bytes() if tls_ca else None
+    except OSError as exc:
+        raise EvalError(f"--tls-ca {tls_ca}: {exc.strerror}") from None
+    try:
+        with PolicyClient(
+            address, session_id="eval-info", token=token, tls_ca=ca, connect_timeout_s=timeout_s
+        ) as client:
             info = client.info
     except PolicyError as exc:
         raise EvalError(f"--server {address}: {exc}") from None
+    except ValueError as exc:  # a --tls-ca file that holds no certificate
+        raise EvalError(f"--tls-ca {tls_ca}: {exc}") from None
     cams = list(info.cameras)
     return {
         "path": f"{info.model_id} served by {address}",
@@ -320,8 +329,8 @@ def evaluate(spec: EvalSpec, out: Path, progress: Callable[[str], None] = print)
     if spec.episodes < 1:
         raise EvalError(f"--episodes must be at least 1, got {spec.episodes}")
     _check_numbers(spec)
-    if spec.expert and (spec.checkpoint or spec.server):
-        raise EvalError("--expert evaluates the scripted expert: leave out --checkpoint and --server")
+    if spec.expert and (spec.checkpoint or spec.server or spec.tls_ca):
+        raise EvalError("--expert evaluates the scripted expert: leave out --checkpoint, --server and --tls-ca")
     if spec.expert and (spec.views or spec.workers):  # (before: taken, unchecked, and meaning nothing)
         raise EvalError(
             "--views and --workers are the policy's: not with --expert (--video-camera picks the videos' camera)"
@@ -331,7 +340,7 @@ def evaluate(spec: EvalSpec, out: Path, progress: Callable[[str], None] = print)
         if spec.server:
             if spec.checkpoint or spec.workers:
                 raise EvalError("--server evaluates a running policy server: leave out --checkpoint and --workers")
-            facts = _server_facts(spec.server)
+            facts = _server_facts(spec.server, spec.tls_ca)
             unknown = [v for v in spec.views or [] if v not in facts["cameras"]]
             if unknown:
                 raise EvalError(
@@ -340,6 +349,8 @@ def evaluate(spec: EvalSpec, out: Path, progress: Callable[[str], None] = print)
                 )
         elif not spec.checkpoint:
             raise EvalError("--checkpoint is required (or --server, or --expert for the scripted baseline)")
+        elif spec.tls_ca:  # (the server it starts listens on loopback, in plaintext)
+            raise EvalError("--tls-ca is for a running server that serves TLS: give it with --server")
         else:
             facts = _checkpoint_facts(spec.checkpoint)
         if facts["tasks"] and spec.task not in facts["tasks"]:
@@ -412,6 +423,8 @@ def evaluate(spec: EvalSpec, out: Path, progress: Callable[[str], None] = print)
                     f"driver.blocking={str(not spec.realtime).lower()}",
                     f"driver.stats_file={stats_file}",
                 ]
+                if spec.tls_ca:
+                    teleop.append(f"driver.tls_ca={Path(spec.tls_ca).resolve()}")
                 if views:
                     teleop.append("driver.views=[" + ",".join(views) + "]")
                 if spec.gamma:

@@ -27,6 +27,9 @@ class PolicyTeleopConfig(DriverConfig):
     gamma: dict[str, float] | None = None  # composition weights (default: the server's, 1/V)
     blocking: bool = False  # wait for each chunk (lockstep sessions); real time: never block
     token: str | None = None  # bearer token of the server (VIEWSCALE_DRIVER__TOKEN)
+    # a server that serves TLS (`viewscale serve --set tls.cert=...`): the PEM file of the CA that
+    # signed its certificate (a self-signed certificate is its own CA); None: plaintext
+    tls_ca: str | None = None
     timeout_s: float = Field(30.0, gt=0)  # GetAction deadline
     connect_timeout_s: float = Field(60.0, gt=0)  # how long to wait for the server at start-up
     seed: int | None = None  # noise seed base; default: from the episode id (reproducible episodes)

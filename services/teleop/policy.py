@@ -36,16 +36,23 @@ log = logging.getLogger(__name__)
 class PolicyTeleop(TeleopDriver):
     def __init__(self, cfg: PolicyTeleopConfig):
         self.cfg = cfg
+        try:
+            tls_ca = Path(cfg.tls_ca).read_bytes() if cfg.tls_ca else None
+        except OSError as exc:
+            raise ConfigError(f"teleop driver policy: tls_ca {cfg.tls_ca}: {exc.strerror}") from None
         try:  # (the service's one error line, as a camera or arm that cannot be reached; before: a traceback)
             self.client = PolicyClient(
                 cfg.server,
                 session_id=f"teleop-{id(self):x}",
                 token=cfg.token,
+                tls_ca=tls_ca,
                 timeout_s=cfg.timeout_s,
                 connect_timeout_s=cfg.connect_timeout_s,
             )
         except PolicyError as exc:
             raise ConnectionError(f"teleop driver policy: {exc}") from None
+        except ValueError as exc:  # a setting the client refuses: a tls_ca file that holds no certificate
+            raise ConfigError(f"teleop driver policy: {exc} (tls_ca {cfg.tls_ca})") from None
         info = self.client.info
         self.cameras = tuple(cfg.views or info.default_views)
         known = {c.name for c in info.cameras}

@@ -3,6 +3,7 @@ checkpoint trained on the session's sim dataset, the robot-side client."""
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import shutil
@@ -18,6 +19,7 @@ import grpc
 import numpy as np
 import pytest
 import torch
+from cli_process import viewscale
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 from policy_processes import start, start_server, start_worker, stop, worker_flags, worker_info
 from polling import wait_for
@@ -838,8 +840,33 @@ def test_tls_serves_verified_clients_only(checkpoint, observations, tmp_path):
         frames, states = observations[0]
         with PolicyClient(addr, tls_ca=cert.read_bytes()) as client:
             assert client.get_action(frames, states).actions.shape == (16, 7)
-        with pytest.raises(PolicyError):
+        with pytest.raises(PolicyError) as err:
             PolicyClient(addr, connect_timeout_s=3)  # plaintext against a TLS server never connects
+        assert "if the server serves TLS" in str(err.value) and "(tls_ca)" in str(err.value)  # (before: no hint)
+        with pytest.raises(ValueError, match="tls_ca holds no PEM certificate"):  # (before: a handshaker error per try)
+            PolicyClient(addr, tls_ca=key.read_bytes())
+
+        # the robot side as the README runs it: the policy teleop, and `viewscale eval --server`,
+        # given the CA (before: neither had a setting for it, and neither could reach a TLS server)
+        from services.core.config import ConfigError
+        from services.teleop.config import PolicyTeleopConfig
+        from services.teleop.policy import PolicyTeleop
+
+        driver = PolicyTeleop(PolicyTeleopConfig(server=addr, tls_ca=str(cert)))
+        assert driver.client.info.model_id and driver.cameras
+        driver.client.close()
+        with pytest.raises(ConfigError, match=f"tls_ca {tmp_path / 'none.pem'}: No such file"):
+            PolicyTeleop(PolicyTeleopConfig(server=addr, tls_ca=str(tmp_path / "none.pem")))
+        out = tmp_path / "eval"
+        run = viewscale(
+            "eval", "--server", addr, "--tls-ca", str(cert), "--episodes", "1", "--max-ticks", "6", "--views", "F",
+            "--out", str(out),
+        )  # fmt: skip
+        assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-3000:]
+        summary = json.loads((out / "report.json").read_text())["summary"]
+        assert summary["requests"] >= 1 and summary["failed_requests"] == 0
+        run = viewscale("eval", "--server", addr, "--tls-ca", str(key), "--out", str(tmp_path / "bad"))
+        assert run.returncode == 2 and f"--tls-ca {key}: tls_ca holds no PEM certificate" in run.stderr, run.stderr
     finally:
         stop(proc)
 
