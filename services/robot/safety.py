@@ -14,7 +14,8 @@ executes, in this order:
    ``max_angular_speed / control_hz`` radians per tick (the vector is scaled, its direction kept);
 3. the workspace box: the translation is cut so that the position the arm is servoing to
    (``RobotDriver.target_position``, or the measured EEF where a driver keeps no target) stays
-   inside ``workspace_lo``..``workspace_hi``, per axis;
+   inside ``workspace_lo``..``workspace_hi``, per axis; on an axis where the arm is outside the
+   box it may only move towards it (at the capped speed: the arm is never pulled in);
 4. the gripper target clamped to [0, 1].
 
 What it returns is the action that really ran and the limits that changed it; the control loop
@@ -82,6 +83,7 @@ class Safety:
         self.stopped = False  # the arm was stopped for want of commands
         self.stops = 0  # times that happened
         self.fault = ""  # the driver's current fault ('' when the arm can move)
+        self._outside = False  # the arm was outside the workspace box at the last command (warned once)
         self.faults = 0  # faults begun (each stopped the arm)
 
     def begin_episode(self) -> None:
@@ -110,9 +112,23 @@ class Safety:
             ref = (self._snapshot or self.read()).eef_pos
         ref = np.asarray(ref, dtype=np.float64)
         goal = ref + dp
-        if np.any((goal < self._lo) | (goal > self._hi)):
-            dp = np.clip(goal, self._lo, self._hi) - ref
+        # per axis the goal may go anywhere in the box, and where the arm is outside it (jogged there
+        # by hand, a box drawn tighter than where it rests) back towards it too: a clip into an
+        # interval that holds ``ref`` never lengthens the step (before: into the box, so that any
+        # command, a zero one too, jumped an arm outside it into the box in one tick at any speed)
+        lo, hi = np.minimum(self._lo, ref), np.maximum(self._hi, ref)
+        if np.any((goal < lo) | (goal > hi)):
+            dp = np.clip(goal, lo, hi) - ref
             limits.append(WORKSPACE)
+        outside = bool(np.any((ref < self._lo) | (ref > self._hi)))
+        if outside and not self._outside:
+            log.warning(
+                "the arm is outside the workspace box (%s, box %s..%s): commands move it only towards the box",
+                np.round(ref, 3).tolist(),
+                list(self.cfg.workspace_lo),
+                list(self.cfg.workspace_hi),
+            )
+        self._outside = outside
         gripper = min(max(float(command.gripper), 0.0), 1.0)
         if gripper != command.gripper:
             limits.append(GRIPPER)

@@ -77,6 +77,26 @@ def test_without_a_driver_target_the_measured_position_is_kept_inside():
     assert arm.pos[0] == pytest.approx(0.8)
 
 
+def test_an_arm_outside_the_box_is_never_jumped_into_it_only_let_move_towards_it():
+    """An arm that starts outside the box (jogged there by hand, a box drawn tighter than where the
+    arm rests) moves only towards the box, at the commanded speed. Before, the goal was clipped into
+    the box: any command, a zero one too (a deadman hold), jumped the arm into it in one tick, at
+    any speed (here 10 cm in 50 ms, 2 m/s against the 0.6 m/s cap)."""
+    arm = PointArm(pos=(0.45, 0.0, 0.65))  # 10 cm above the box's top (0.55)
+    safe = Safety(arm, SafetyConfig(), 20.0)
+    safe.read()
+    held = safe.apply(EefDelta(ZERO, ZERO, 0.0))  # a deadman's zero delta: holds still
+    assert np.array_equal(held.action.dp, ZERO) and arm.pos[2] == pytest.approx(0.65)
+    up = safe.apply(EefDelta(np.array([0.01, 0.0, 0.02]), ZERO, 0.0))  # away from the box: that axis is cut
+    assert up.limits == ("workspace",) and np.allclose(up.action.dp, [0.01, 0.0, 0.0])
+    down = safe.apply(EefDelta(np.array([0.0, 0.0, -0.02]), ZERO, 0.0))  # towards it: as commanded
+    assert down.limits == () and np.allclose(down.action.dp, [0.0, 0.0, -0.02])
+    for _ in range(6):  # on into the box, then stopped at its far side as any arm inside is
+        ran = safe.apply(EefDelta(np.array([0.0, 0.0, -0.3]), ZERO, 0.0))
+        assert abs(ran.action.dp[2]) <= 0.6 / 20 + 1e-12  # never above the speed cap
+    assert 0.0 <= arm.pos[2] <= 0.55
+
+
 def test_the_gripper_target_is_clamped():
     safe = Safety(PointArm(), SafetyConfig(), 20.0)
     safe.read()
