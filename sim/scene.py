@@ -15,6 +15,7 @@ agree with ``Camera.project`` exactly: the calibration is exact by construction.
 
 from __future__ import annotations
 
+import os
 from xml.sax.saxutils import quoteattr
 
 import mujoco
@@ -155,6 +156,10 @@ def build_model(task: Task, rig: Rig, width: int = 84, height: int = 84) -> mujo
     return mujoco.MjModel.from_xml_string(scene_xml(task, rig, width, height))
 
 
+class RenderError(RuntimeError):
+    """No OpenGL context to render the cameras with (the message says which backend, and what to do)."""
+
+
 class MultiCameraRenderer:
     """Draws every camera of one simulation state into (H, W, 3) uint8 RGB arrays.
 
@@ -180,14 +185,17 @@ class MultiCameraRenderer:
         # renders next can take it.
         try:
             self._gl = mujoco.GLContext(width, height)
-        except Exception as exc:  # GLFW on a machine without a display, most often
-            raise RuntimeError(
-                f"cannot create an OpenGL context for rendering ({exc}); for headless rendering "
-                "set MUJOCO_GL=egl (or osmesa) before mujoco is imported"
+            with self._gl.as_current():  # (GLFW with no display gets this far, and fails here)
+                self._ctx = mujoco.MjrContext(model, mujoco.mjtFontScale.mjFONTSCALE_100)
+                mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN, self._ctx)
+        except Exception as exc:  # GLFW on a machine without a display, no EGL or OSMesa library
+            if getattr(self, "_gl", None) is not None:
+                self._gl.free()
+            raise RenderError(
+                f"cannot render with MUJOCO_GL={os.environ.get('MUJOCO_GL', '(unset)')}: {exc}; headless, "
+                "render with MUJOCO_GL=egl (libEGL: apt install libegl1) or MUJOCO_GL=osmesa "
+                "(apt install libosmesa6), set before mujoco is imported"
             ) from exc
-        with self._gl.as_current():
-            self._ctx = mujoco.MjrContext(model, mujoco.mjtFontScale.mjFONTSCALE_100)
-            mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN, self._ctx)
         self._scene = mujoco.MjvScene(model, maxgeom=1000)
         self._scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = 0
         self._scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = 0

@@ -24,6 +24,7 @@ from services.camera.publisher import CameraPublisher
 from services.core import topics
 from services.core.bus import Bus
 from services.core.clock import Rate, now_ns
+from services.core.config import ConfigError
 from services.core.rig import load_rig
 from services.core.runtime import refuse_rivals, serve
 from services.core.success import SuccessWatch
@@ -35,6 +36,7 @@ from services.robot.loop import ControlLoop
 from services.robot.safety import Safety
 from sim.backends import SimCamera, SimRobot
 from sim.config import SimConfig
+from sim.scene import RenderError
 from sim.world import TASKS, SimWorld
 
 log = logging.getLogger(__name__)
@@ -92,6 +94,10 @@ class SimService:
     # -- lifecycle ----------------------------------------------------------------------
     def __enter__(self) -> SimService:
         refuse_rivals(self.bus, "sim", {"sim", "robot", "camera"})  # (before: a sim on a lab's bus was taken)
+        try:  # a frame now, on the thread that renders every tick: no GL, no start (before: the first
+            self.world.render()  # tick raised, and a session waited for a sim that never answered)
+        except RenderError as exc:
+            raise ConfigError(str(exc)) from None
         self.cameras.publish_calibration(now_ns())
         self._calib_thread.start()
         self.bus.announce("sim")

@@ -326,10 +326,13 @@ class Bus:
 
     def query(self, key: str, payload: bytes, timeout: float = 5.0) -> bytes:
         """One request/reply; raises ``TimeoutError`` if nobody answers in ``timeout``."""
+        t0 = time.monotonic()
         for reply in self.session.get(self.key(key), payload=payload, timeout=timeout):
             if reply.ok is not None:
                 return reply.ok.payload.to_bytes()
             raise RuntimeError(f"query {key} failed: {reply.err.payload.to_bytes().decode(errors='replace')}")
+        if time.monotonic() - t0 < 0.9 * timeout:  # (before: 'within 20.0s' for an answer in 0.01 s)
+            raise TimeoutError(f"no reply on {self.key(key)}: nothing answers it (is the service running?)")
         raise TimeoutError(f"no reply on {self.key(key)} within {timeout:.1f}s (is the service running?)")
 
     # -- liveliness ---------------------------------------------------------------------

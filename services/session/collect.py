@@ -158,12 +158,20 @@ class LocalStack:
                     pending.pop(child.proc.stdout.fileno(), None)
         sel.close()
 
-    def check_alive(self) -> None:
-        for child in self.children:
-            if child.proc.poll() is not None:
-                raise CollectError(
-                    f"{child.name} exited with code {child.proc.returncode}; last log lines:\n{child.tail()}"
-                )
+    def check_alive(self, grace_s: float = 0.0) -> None:
+        """CollectError naming a child that exited, with its last log lines. ``grace_s``: how long to
+        wait for one to exit, after an error that a dying child causes before it is gone (its
+        queryable is, while the process still closes its bus: the session's query fails first)."""
+        deadline = time.monotonic() + grace_s
+        while True:
+            for child in self.children:
+                if child.proc.poll() is not None:
+                    raise CollectError(
+                        f"{child.name} exited with code {child.proc.returncode}; last log lines:\n{child.tail()}"
+                    )
+            if time.monotonic() >= deadline:
+                return
+            time.sleep(0.05)
 
     def __exit__(self, *exc) -> None:
         for child in self.children:
@@ -229,7 +237,7 @@ def collect(
             try:
                 result = Session(cfg, bus, progress=progress).run()
             except (SessionError, TimeoutError) as exc:
-                stack.check_alive()  # a crashed child explains more than the symptom
+                stack.check_alive(grace_s=3.0)  # a crashed child explains more than the symptom
                 raise CollectError(str(exc)) from exc
     progress(summary(result))
     return result

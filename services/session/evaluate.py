@@ -442,7 +442,7 @@ def evaluate(spec: EvalSpec, out: Path, progress: Callable[[str], None] = print)
                     try:
                         return Session(cfg, bus, progress=progress).run()
                     except (SessionError, TimeoutError) as exc:
-                        stack.check_alive()
+                        stack.check_alive(grace_s=3.0)
                         raise CollectError(str(exc)) from exc
 
         if spec.expert:

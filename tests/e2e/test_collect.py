@@ -151,6 +151,20 @@ def test_bad_arguments_fail_fast_with_one_line(tmp_path):
     assert sorted(p.name for p in ds.iterdir()) == ["manifest.json"]
 
 
+def test_a_sim_that_cannot_render_fails_its_start_saying_why_and_what_to_do(tmp_path):
+    """No OpenGL to render with (here GLFW with no display, as on a headless machine without EGL):
+    the sim renders a frame before it says ready, and exits with one error line naming the backend
+    and the ones that render headless. Before, it said ready, its first tick raised, and the session
+    reported only `no reply on vs/sim/control within 20.0s (is the service running?)`."""
+    env = {k: v for k, v in user_env(MUJOCO_GL="glx").items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
+    cmd = [sys.executable, "-m", "services.cli", "collect", "--out", str(tmp_path), "--rig", "front", "--fast"]
+    proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=120, env=env)
+    assert proc.returncode != 0, proc.stdout
+    assert "sim exited with code 2 before it was ready" in proc.stderr, proc.stderr[-3000:]
+    assert "error: cannot render with MUJOCO_GL=glx: " in proc.stderr and "MUJOCO_GL=egl (libEGL" in proc.stderr
+    assert "Traceback" not in proc.stderr and not list(tmp_path.glob("*.mcap*"))
+
+
 def test_sigterm_mid_session_keeps_the_partial_episode_and_stops_every_service(tmp_path):
     import signal
 
@@ -257,5 +271,23 @@ def test_sighup_to_collect_stops_like_sigterm(tmp_path):
     proc.send_signal(signal.SIGHUP)  # the terminal was closed
     out, err = proc.communicate(timeout=60)
     assert proc.returncode == 130 and "interrupted (SIGHUP)" in err, err
+    gone, alive = psutil.wait_procs(children, timeout=30)
+    assert not alive and not list(tmp_path.glob("*.part"))
+
+
+def test_a_service_that_exits_mid_session_is_named_with_its_last_log_lines(tmp_path):
+    """The sim stopped mid-episode (here SIGTERM: it closes its bus, a while after its queryable is
+    gone): collect names it, its exit code and its log's last lines, and keeps the cut episode.
+    Before, the sim was still exiting when collect looked, and it said only `service(s) lost
+    mid-episode: sim`."""
+    import psutil
+
+    proc, children = _start_collect(tmp_path)
+    sim = next(c for c in children if c.cmdline()[2] == "sim")
+    sim.send_signal(signal.SIGTERM)
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 2, err
+    assert "error: sim exited with code 0; last log lines:" in err and "received SIGTERM" in err, err[-3000:]
+    assert "kept as failed" in out  # the cut episode, as before
     gone, alive = psutil.wait_procs(children, timeout=30)
     assert not alive and not list(tmp_path.glob("*.part"))
