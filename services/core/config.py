@@ -125,12 +125,17 @@ def read_yaml(path: str | Path) -> dict[str, Any]:
     path = Path(path)
     if not path.is_file():
         raise ConfigError(f"config file {path} does not exist")
+    return yaml_mapping(path.read_text(), f"config file {path}")
+
+
+def yaml_mapping(text: str, what: str) -> dict[str, Any]:
+    """The mapping YAML ``text`` holds; a ConfigError naming ``what`` (a file) otherwise."""
     try:
-        data = yaml.safe_load(path.read_text()) or {}
+        data = yaml.safe_load(text) or {}
     except yaml.YAMLError as exc:
-        raise ConfigError(f"config file {path} is not valid YAML: {exc}") from exc
+        raise ConfigError(f"{what} is not valid YAML: {exc}") from exc
     if not isinstance(data, dict):
-        raise ConfigError(f"config file {path} must hold a mapping at the top level")
+        raise ConfigError(f"{what} must hold a mapping at the top level")
     return data
 
 

@@ -96,6 +96,9 @@ class TrainerServiceConfig(Frozen):
     bus: BusConfig = Field(default_factory=BusConfig)  # zenoh session
     jobs_dir: str | None = None  # watch this directory for *.yaml / *.json job files; None = queries only
     poll_s: float = Field(1.0, gt=0)  # how often the jobs directory is scanned
+    # a job file is taken once it has not changed for this long: one being written (copied, saved by
+    # an editor) is not read half-written; moving a finished file in is taken at the next scan after
+    settle_s: float = Field(1.0, ge=0)
     progress_every_s: float = Field(1.0, ge=0)  # minimum seconds between progress messages
     defaults: list[str] = Field(default_factory=list)  # `key=value` overrides applied under every job's own
     log_level: LogLevel = "INFO"  # logging level of the process

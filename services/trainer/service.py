@@ -5,8 +5,10 @@ Requests come two ways, handled alike and run one at a time, in order:
 - a Zenoh query on ``trainer/request`` (``TrainRequest`` -> ``TrainReply``): TRAIN queues a job,
   CANCEL stops one (it checkpoints where it is), STATUS lists the running and queued jobs;
 - a job file dropped in ``jobs_dir``: ``<name>.yaml`` (or ``.json``) holds a training config (the
-  same keys as ``viewscale train --config``). It is renamed ``<name>.yaml.running`` when taken, then
-  ``.done`` / ``.failed`` / ``.stopped``, with ``<name>.result.json`` beside it.
+  same keys as ``viewscale train --config``). It is taken once it has not changed for ``settle_s``
+  (a file still being written is not read half-way), renamed ``<name>.yaml.running``, then
+  ``.done`` / ``.failed`` / ``.stopped``, with ``<name>.result.json`` beside it; a refused file is
+  logged as an error naming it.
 
 Progress goes out on ``trainer/progress`` (``TrainProgress``): QUEUED, then RUNNING about once a
 ``progress_every_s`` (step, loss, lr, it/s, ETA, validation loss), then DONE, FAILED or STOPPED.
@@ -27,7 +29,7 @@ from pathlib import Path
 from typing import Any
 
 from services.core.bus import Bus
-from services.core.config import ConfigError, deep_merge, parse_overrides, read_yaml
+from services.core.config import ConfigError, deep_merge, parse_overrides, yaml_mapping
 from services.core.runtime import OutputError, exclusive, output_dir, refuse_rivals, wait_for_stop
 from services.core.topics import TRAIN_PROGRESS, TRAIN_REQUEST
 from services.dataset.store import DatasetError, DatasetStore
@@ -151,24 +153,62 @@ class TrainerService:
     # -- job files ------------------------------------------------------------------------------
     def _watch(self) -> None:
         jobs_dir = Path(self.cfg.jobs_dir)
+        seen: dict[Path, tuple[tuple[int, int], float]] = {}  # file -> (size, mtime) and since when
         while not self._stop.is_set():
-            for path in sorted([*jobs_dir.glob("*.yaml"), *jobs_dir.glob("*.yml"), *jobs_dir.glob("*.json")]):
+            now = time.monotonic()
+            files = sorted([*jobs_dir.glob("*.yaml"), *jobs_dir.glob("*.yml"), *jobs_dir.glob("*.json")])
+            for path in list(seen):
+                if path not in files:
+                    del seen[path]
+            for path in files:
                 if path.name.endswith(".result.json"):
                     continue
+                try:
+                    st = path.stat()
+                except OSError:
+                    continue
+                stamp = (st.st_size, st.st_mtime_ns)
+                if path not in seen or seen[path][0] != stamp:
+                    seen[path] = (stamp, now)  # (before: taken at once, a file being written half-read)
+                if now - seen[path][1] < self.cfg.settle_s:
+                    continue
+                del seen[path]
                 taken = path.with_name(path.name + ".running")
                 try:
                     path.rename(taken)  # atomic: a file is taken once
                 except OSError:
                     continue
                 try:
-                    raw = json.loads(taken.read_text()) if path.suffix == ".json" else read_yaml(taken)
+                    raw = self._read_job(taken, path)
                     cfg = self._job_config(raw, [])
                 except (ConfigError, DatasetError, ValueError) as exc:
-                    self._finish_file(taken, "failed", {"error": str(exc)})
-                    self._publish(Job(path.stem, TrainConfig(), taken), S.TRAIN_STATE_FAILED, error=str(exc))
+                    # named as the file was dropped (before: as '<name>.running', gone by then), and
+                    # logged (before: only in <name>.result.json and on trainer/progress)
+                    error = str(exc) if str(exc).startswith(f"job file {path}") else f"job file {path}: {exc}"
+                    log.error("%s (now %s.failed)", error, path.name)
+                    self._finish_file(taken, "failed", {"error": error})
+                    self._publish(Job(path.stem, TrainConfig(), taken), S.TRAIN_STATE_FAILED, error=error)
                     continue
                 self.submit(cfg, path.stem, taken)
             self._stop.wait(self.cfg.poll_s)
+
+    @staticmethod
+    def _read_job(taken: Path, path: Path) -> dict[str, Any]:
+        """The mapping job file ``path`` (taken: renamed ``taken``) holds; a ConfigError naming it."""
+        what = f"job file {path}"
+        try:
+            text = taken.read_text()
+        except (OSError, UnicodeDecodeError) as exc:
+            raise ConfigError(f"{what} cannot be read: {exc}") from None
+        if path.suffix != ".json":
+            return yaml_mapping(text, what)
+        try:
+            raw = json.loads(text)
+        except ValueError as exc:
+            raise ConfigError(f"{what} is not valid JSON: {exc}") from None
+        if not isinstance(raw, dict):
+            raise ConfigError(f"{what} must hold an object at the top level")
+        return raw
 
     @staticmethod
     def _finish_file(taken: Path, outcome: str, result: dict[str, Any]) -> None:

@@ -4,6 +4,7 @@ tiny policy on a recorded sim dataset while progress arrives on trainer/progress
 
 from __future__ import annotations
 
+import json
 import os
 import queue
 import signal
@@ -101,7 +102,7 @@ def test_query_trains_and_publishes_progress(sim_dataset, tmp_path, make_bus):
         assert load_policy(tmp_path / "run").info["step"] == 3
 
 
-def test_job_file_is_taken_trained_and_marked(sim_dataset, tmp_path, make_bus):
+def test_job_file_is_taken_trained_and_marked(sim_dataset, tmp_path, make_bus, caplog):
     jobs = tmp_path / "jobs"
     jobs.mkdir()
     cfg = TrainerServiceConfig(bus=make_bus().cfg, jobs_dir=str(jobs), poll_s=0.1, defaults=JOB_SETTINGS)
@@ -109,7 +110,16 @@ def test_job_file_is_taken_trained_and_marked(sim_dataset, tmp_path, make_bus):
         client = make_bus()
         client.wait_alive([SERVICE_NAME], timeout=10)
         progress = _progress(client)
+        # a file being written, with a pause mid-way: taken whole, once it stopped changing for
+        # settle_s (before: taken at the next scan, half-written: 'not valid YAML')
+        with open(jobs / "slow.yaml", "w") as f:
+            f.write("data: /nonexistent\nsteps: [1,\n")
+            f.flush()
+            time.sleep(0.5)
+            f.write(" 2]\nsetting: that does not exist\n")
         (jobs / "bad.yaml").write_text("data: /nonexistent\nout: x\nsteps: nope\n")
+        (jobs / "list.json").write_text("[1, 2]")
+        (jobs / "broken.yaml").write_text("steps: [oops\n")
         (jobs / "after-collect.yaml").write_text(
             f"data: {sim_dataset}\nout: {tmp_path / 'run'}\npreset: tiny\nsteps: 2\nviews: [F]\n"
         )
@@ -122,6 +132,18 @@ def test_job_file_is_taken_trained_and_marked(sim_dataset, tmp_path, make_bus):
     assert '"outcome": "done"' in (jobs / "after-collect.result.json").read_text()
     assert (jobs / "bad.yaml.failed").exists()
     assert "steps" in (jobs / "bad.result.json").read_text()
+    slow = json.loads((jobs / "slow.result.json").read_text())["error"]
+    assert "setting: no such setting" in slow and "not valid YAML" not in slow, slow
+    listed = json.loads((jobs / "list.result.json").read_text())["error"]
+    assert listed == f"job file {jobs / 'list.json'} must hold an object at the top level"
+    # each refusal is in the service's log, naming the file as it was dropped (before: not logged,
+    # and a YAML error named '<name>.running')
+    refused = [r.getMessage() for r in caplog.records if r.levelname == "ERROR"]
+    broken = json.loads((jobs / "broken.result.json").read_text())["error"]
+    assert broken.startswith(f"job file {jobs / 'broken.yaml'} is not valid YAML: "), broken
+    for name in ("slow.yaml", "bad.yaml", "list.json", "broken.yaml"):
+        assert any(m.startswith(f"job file {jobs / name}") and f"(now {name}.failed)" in m for m in refused), refused
+    assert not any(".running" in m for m in refused)
     assert load_policy(tmp_path / "run").info["views"] == ["F"]
 
 
