@@ -7,7 +7,8 @@ executes, in this order:
    log it as an error and stop the arm (``RobotDriver.stop``); while it lasts send the driver
    nothing and report a hold carrying the fault (the loop puts it in ``AppliedAction.fault``, the
    recorder flags the episode); once it clears, commands move the arm again;
-1. no fresh command: hold still (zero motion, the last gripper target); once no fresh command
+1. no fresh command: hold still (zero motion, the last gripper target; before any command, the
+   gripper as it is: closed on an object stays closed); once no fresh command
    has come for ``command_timeout_s``, stop the arm (``RobotDriver.stop``) and keep holding
    until commands come again;
 2. translation capped at ``max_speed / control_hz`` metres and rotation at
@@ -78,7 +79,9 @@ class Safety:
         self._lo = np.asarray(cfg.workspace_lo, dtype=np.float64)
         self._hi = np.asarray(cfg.workspace_hi, dtype=np.float64)
         self._snapshot: RobotSnapshot | None = None
-        self._gripper = 0.0
+        # the gripper target a hold keeps: the last command's, or, before any, where the gripper is
+        # (above 0.5: closed, as the teleop devices take it over); None until then
+        self._gripper: float | None = None
         self._last_fresh = time.monotonic()
         self.stopped = False  # the arm was stopped for want of commands
         self.stops = 0  # times that happened
@@ -87,8 +90,10 @@ class Safety:
         self.faults = 0  # faults begun (each stopped the arm)
 
     def begin_episode(self) -> None:
-        """A new episode: gripper target open, the command timeout counted from now."""
-        self._gripper = 0.0
+        """A new episode (the sim's reset): the gripper target read again, the command timeout
+        counted from now."""
+        self._gripper = None
+        self._snapshot = None
         self._last_fresh = time.monotonic()
         self.stopped = False
 
@@ -150,7 +155,7 @@ class Safety:
                 self.stops += 1
                 log.warning("no command for %.1f s: stopping the arm", now - self._last_fresh)
                 self.driver.stop()
-            hold = EefDelta.hold(self._gripper)
+            hold = EefDelta.hold(self._held_gripper())
             self.driver.apply(hold)
             return Executed(hold, stale=True)
         if self.stopped:
@@ -170,7 +175,15 @@ class Safety:
         self.fault = fault
         if command is not None:
             self._last_fresh = now  # the teleop is there: no command timeout on top of the fault
-        return Executed(EefDelta.hold(self._gripper), stale=command is None, fault=fault)
+        return Executed(EefDelta.hold(self._held_gripper()), stale=command is None, fault=fault)
+
+    def _held_gripper(self) -> float:
+        """What a hold commands the gripper: the last command's target; before any, where it is
+        (before: open, so a robot service started with an object in the gripper dropped it)."""
+        if self._gripper is None:
+            closure = (self._snapshot or self.read()).gripper
+            self._gripper = 1.0 if closure > 0.5 else 0.0
+        return self._gripper
 
     def close(self) -> None:
         self.driver.close()

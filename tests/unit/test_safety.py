@@ -21,13 +21,14 @@ ZERO = np.zeros(3)
 class PointArm(RobotDriver):
     """A kinematic EEF that goes exactly where it is told and keeps no target of its own."""
 
-    def __init__(self, pos=(0.45, 0.0, 0.25)):
+    def __init__(self, pos=(0.45, 0.0, 0.25), closure=0.0):
         self.pos = np.array(pos, dtype=np.float64)
+        self.closure = closure  # what its gripper reports
         self.applied: list[EefDelta] = []
         self.stops = 0
 
     def read(self) -> RobotSnapshot:
-        return RobotSnapshot(self.pos.copy(), np.array([0.0, 1.0, 0.0, 0.0]), np.zeros(6), np.zeros(6), 0.0)
+        return RobotSnapshot(self.pos.copy(), np.array([0.0, 1.0, 0.0, 0.0]), np.zeros(6), np.zeros(6), self.closure)
 
     def apply(self, action: EefDelta) -> None:
         self.applied.append(action)
@@ -95,6 +96,21 @@ def test_an_arm_outside_the_box_is_never_jumped_into_it_only_let_move_towards_it
         ran = safe.apply(EefDelta(np.array([0.0, 0.0, -0.3]), ZERO, 0.0))
         assert abs(ran.action.dp[2]) <= 0.6 / 20 + 1e-12  # never above the speed cap
     assert 0.0 <= arm.pos[2] <= 0.55
+
+
+def test_holding_before_any_command_keeps_the_gripper_as_it_is():
+    """The robot service ticks from its start, holding still until a teleop commands. Its holds
+    keep the gripper where it is (closed on an object: closed), as the teleop devices take it over.
+    Before, they commanded it open: a robot service (re)started while the gripper held an object
+    dropped it before anyone touched a control."""
+    for closure, kept in ((0.8, 1.0), (0.1, 0.0)):  # closed on an object; (nearly) open
+        arm = PointArm(closure=closure)
+        safe = Safety(arm, SafetyConfig(), 20.0)
+        safe.read()
+        held = safe.apply(None)
+        assert held.stale and held.action.gripper == kept and arm.applied[-1].gripper == kept
+    ran = safe.apply(EefDelta(ZERO, ZERO, 1.0))  # a command sets the gripper, holds keep the last one
+    assert ran.action.gripper == 1.0 and safe.apply(None).action.gripper == 1.0
 
 
 def test_the_gripper_target_is_clamped():
