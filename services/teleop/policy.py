@@ -118,7 +118,9 @@ class PolicyTeleop(TeleopDriver):
         if not state.episode_id and not self.cfg.outside_episodes:
             # no episode is being recorded (an operator resetting the scene): hold still, ask nothing
             # (before: the policy drove a real arm from the teleop's start on, between episodes too)
-            return EefDelta(np.zeros(3), np.zeros(3), float(state.gripper))
+            # the gripper kept as it is, closed on an object closed, as the devices and the safety
+            # layer's holds keep it (before: the reading itself, a target where a gripper has no grip)
+            return EefDelta(np.zeros(3), np.zeros(3), 1.0 if state.gripper > 0.5 else 0.0)
         if self.runner is None:
             self.reset("", state.episode_id)
         now = State(np.asarray(state.eef_pos), np.asarray(state.eef_quat_wxyz), state.gripper, state.header.stamp_ns)

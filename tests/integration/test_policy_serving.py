@@ -935,8 +935,8 @@ def test_the_policy_teleop_drives_only_within_an_episode(checkpoint, observation
         s = states[-1]
         seen = {"F": CameraFrame(*frames["F"][-1])}
 
-        def state(episode: str) -> RobotState:
-            msg = RobotState(tick=1, eef_pos=list(s.eef_pos), eef_quat_wxyz=list(s.eef_quat_wxyz), gripper=0.4)
+        def state(episode: str, gripper: float = 0.4) -> RobotState:
+            msg = RobotState(tick=1, eef_pos=list(s.eef_pos), eef_quat_wxyz=list(s.eef_quat_wxyz), gripper=gripper)
             msg.header.stamp_ns, msg.episode_id = s.stamp_ns, episode
             return msg
 
@@ -946,8 +946,11 @@ def test_the_policy_teleop_drives_only_within_an_episode(checkpoint, observation
                 between = driver.act(state(""), None, seen)
                 asked = driver.runner.stats.requests if driver.runner is not None else 0
                 assert (asked > 0) == outside, (outside, asked)
-                if not outside:  # held still, the gripper where it is: no GetAction
-                    assert not between.dp.any() and not between.drot.any() and between.gripper == 0.4
+                if not outside:  # held still, the gripper as it is: no GetAction
+                    assert not between.dp.any() and not between.drot.any() and between.gripper == 0.0
+                    # closed on an object (reads 0.8): kept closed (before: commanded to 0.8, the
+                    # reading, where a gripper holds no grip; and again at every tick's reading)
+                    assert driver.act(state("", 0.8), None, seen).gripper == 1.0
                 driver.reset("lift", "ep-1")
                 driver.act(state("ep-1"), None, seen)
                 assert driver.runner.stats.requests > 0
