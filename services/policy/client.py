@@ -408,7 +408,7 @@ class ChunkRunner:
         self._states: deque = deque(maxlen=self.To)
         self._queue: dict[int, np.ndarray] = {}
         self._pending: tuple[int, threading.Thread, list] | None = None  # (obs tick, thread, [result])
-        self._gripper = 0.0
+        self._gripper: float | None = None  # what a hold commands: the last action's, else as the robot reads
         self._requests = 0
         self._latency = 0.0  # running estimate (s)
 
@@ -479,6 +479,8 @@ class ChunkRunner:
     def act(self, tick: int, frames: Mapping[str, tuple[Image, int]], state: State) -> tuple[np.ndarray, bool]:
         """(7-vector action for ``tick``, True) or a hold and False when none is queued."""
         self._observe(frames, state)
+        if self._gripper is None:  # (before: open, dropping an object held when the episode began)
+            self._gripper = 1.0 if state.gripper > 0.5 else 0.0
         self._collect(tick, wait=False)
         left = sum(1 for t in self._queue if t >= tick)
         if self._pending is None and left <= (0 if self.blocking else self._lead_ticks()):

@@ -906,13 +906,17 @@ def test_the_chunk_runner_executes_chunks_drops_stale_actions_and_never_blocks(c
             assert np.array_equal(got[16][0], chunk.actions[chunk.start_index])
 
             live = ChunkRunner(client, seed=100)
-            action, fresh = live.act(0, now, states[-1])  # the first chunk is on its way: hold still
+            holding = State(states[-1].eef_pos, states[-1].eef_quat_wxyz, 0.8, states[-1].stamp_ns)
+            action, fresh = live.act(0, now, holding)  # the first chunk is on its way: hold still
             assert not fresh and np.array_equal(action[:6], np.zeros(6)) and live.stats.underruns == 1
+            # ... with the gripper as it is: closed on an object (reads 0.8), closed (before: open,
+            # so an episode begun holding an object dropped it while the first chunk was on its way)
+            assert action[6] == 1.0
             deadline = time.monotonic() + 20
             while live._pending is not None and live._pending[1].is_alive():
                 assert time.monotonic() < deadline
                 time.sleep(0.01)
-            action, fresh = live.act(3, now, states[-1])  # arrived at tick 3: ticks 0-2 went stale
+            action, fresh = live.act(3, now, holding)  # arrived at tick 3: ticks 0-2 went stale
             assert fresh and live.stats.stale_dropped == 3
             c = live.last_chunk
             assert np.array_equal(action, c.actions[c.start_index + 3])
