@@ -151,6 +151,15 @@ def _eval(args: argparse.Namespace) -> int:
         )
         if every:  # not a policy that failed the task: nothing was evaluated
             return 1
+    if not r["expert"] and r.get("refused"):
+        every = r["refused_episodes"] == r["episodes"]
+        print(
+            f"{'error' if every else 'warning'}: the policy held the arm still in {r['refused_episodes']} of "
+            f"{r['episodes']} episodes: {r['refused']}",
+            file=sys.stderr,
+        )
+        if every:
+            return 1
     return 0
 
 

@@ -330,7 +330,11 @@ class Bus:
         for reply in self.session.get(self.key(key), payload=payload, timeout=timeout):
             if reply.ok is not None:
                 return reply.ok.payload.to_bytes()
-            raise RuntimeError(f"query {key} failed: {reply.err.payload.to_bytes().decode(errors='replace')}")
+            error = reply.err.payload.to_bytes().decode(errors="replace")
+            if error == "Timeout":  # zenoh's own: the service is there but did not answer in time
+                # (before: a RuntimeError, which the sessions did not expect: a traceback)
+                raise TimeoutError(f"no reply on {self.key(key)} within {timeout:.1f}s (the service is busy or stuck)")
+            raise RuntimeError(f"query {key} failed: {error}")
         if time.monotonic() - t0 < 0.9 * timeout:  # (before: 'within 20.0s' for an answer in 0.01 s)
             raise TimeoutError(f"no reply on {self.key(key)}: nothing answers it (is the service running?)")
         raise TimeoutError(f"no reply on {self.key(key)} within {timeout:.1f}s (is the service running?)")

@@ -158,6 +158,23 @@ def scale_K(K: np.ndarray, size: tuple[int, int], new_size: tuple[int, int]) -> 
     return K
 
 
+def camera_gap(
+    R_ext_a, position_a, K_a, size_a: tuple[int, int], R_ext_b, position_b, K_b, size_b: tuple[int, int]
+) -> str:
+    """How camera b differs from camera a, e.g. 'placed 23.0 mm and 2.10 degrees away, intrinsics
+    3.0 px apart' ('' within 1 mm, 1 mrad and half a pixel; K_b is compared at a's frame size)."""
+    dp = float(np.linalg.norm(np.asarray(position_b, dtype=np.float64) - np.asarray(position_a, dtype=np.float64)))
+    R_a, R_b = np.asarray(R_ext_a, dtype=np.float64), np.asarray(R_ext_b, dtype=np.float64)
+    dr = float(np.arccos(np.clip((np.trace(R_b @ R_a.T) - 1.0) / 2.0, -1.0, 1.0)))
+    dk = float(np.abs(scale_K(np.asarray(K_b, dtype=np.float64), size_b, size_a) - np.asarray(K_a)).max())
+    parts = []
+    if dp > 1e-3 or dr > 1e-3:
+        parts.append(f"placed {dp * 1000:.1f} mm and {np.degrees(dr):.2f} degrees away")
+    if dk > 0.5:
+        parts.append(f"intrinsics {dk:.1f} px apart")
+    return ", ".join(parts)
+
+
 def distort(xy: np.ndarray, D: np.ndarray) -> np.ndarray:
     """(N, 2) normalised image coordinates -> distorted ones (OpenCV plumb_bob, k1 k2 p1 p2 [k3])."""
     if len(D) == 0 or not np.any(D):

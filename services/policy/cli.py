@@ -215,7 +215,11 @@ def add_policy_commands(subparsers: argparse._SubParsersAction) -> None:
         help="bf16: the model's passes under bfloat16 autocast, in-process and in local workers; "
         "remote workers must run with the same (default fp32)",
     )
-    p.add_argument("--rig", help="rig preset or YAML with cameras the checkpoint was not trained on")
+    p.add_argument(
+        "--rig",
+        help="rig preset or YAML: cameras the checkpoint was not trained on, or recalibrated since "
+        "(its cameras take the place of the checkpoint's of the same name)",
+    )
     p.add_argument("--task", help="with --rig: the task whose framing the rig takes")
     p.add_argument("--log-dir", help="write local workers' logs here")
     p.add_argument("--config", help="YAML with a `policy` section")

@@ -80,7 +80,7 @@ class PolicySpec:
         cls, info: dict[str, Any], sha256: str, model_id: str, extra_cameras: dict[str, CameraSpec] | None = None
     ) -> PolicySpec:
         model = info["model"]
-        cameras: dict[str, CameraSpec] = dict(extra_cameras or {})
+        cameras: dict[str, CameraSpec] = {}
         for name, c in (info.get("calibration") or {}).items():
             if c is None:
                 continue
@@ -93,6 +93,9 @@ class PolicySpec:
                 np.asarray(c["position"], dtype=np.float64),
             )
         views = tuple(info.get("views") or cameras)
+        # a rig's cameras take the place of the checkpoint's of the same name: a camera recalibrated
+        # (moved) since training is served where it is now (before: the training calibration won)
+        cameras.update(extra_cameras or {})
         return cls(
             model_id=model_id,
             sha256=sha256,

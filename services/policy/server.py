@@ -46,7 +46,7 @@ from grpc_health.v1 import health_pb2, health_pb2_grpc
 
 from services.core.action_spaces import eef_chunk_to_base, from_space
 from services.core.geometry import quat_wxyz_to_matrix
-from services.core.rig import load_rig
+from services.core.rig import camera_gap, load_rig
 from services.core.robot_types import EefDelta, action_msg
 from services.core.runtime import child_env
 from services.core.tensors import from_tensor, to_tensor
@@ -1109,7 +1109,9 @@ def rig_cameras(rig: str, task: str | None, width: int, height: int) -> dict[str
 
 
 def load_spec(cfg) -> tuple[PolicySpec, NoiseConfig, dict[str, Any]]:
-    """The checkpoint's PolicySpec (plus the rig's extra cameras) and its noise config; no weights."""
+    """The checkpoint's PolicySpec and its noise config; no weights. ``cfg.rig``'s cameras are added,
+    and take the place of the checkpoint's of the same name (a camera recalibrated since training
+    is served where it is now; each that differs is logged)."""
     info = read_info(cfg.checkpoint)
     sha = checkpoint_sha256(cfg.checkpoint)
     extra = {}
@@ -1119,6 +1121,18 @@ def load_spec(cfg) -> tuple[PolicySpec, NoiseConfig, dict[str, Any]]:
             (int(cal["source_width"]), int(cal["source_height"])) if cal else tuple(info["model"]["image_size"][::-1])
         )
         extra = rig_cameras(cfg.rig, cfg.task, w, h)
+    trained = PolicySpec.from_info(info, sha, model_id(cfg.checkpoint)).cameras
+    for name in sorted(set(extra) & set(trained)):
+        a, b = trained[name], extra[name]
+        if moved := camera_gap(
+            a.R_ext, a.position, a.K, (a.width, a.height), b.R_ext, b.position, b.K, (b.width, b.height)
+        ):
+            log.warning(
+                "camera %s: --rig %s differs from the checkpoint's training calibration (%s): served with the rig's",
+                name,
+                cfg.rig,
+                moved,
+            )
     spec = PolicySpec.from_info(info, sha, model_id(cfg.checkpoint), extra)
     views = list(cfg.views or spec.train_views)
     unknown = [v for v in views if v not in spec.cameras]

@@ -215,6 +215,7 @@ def _episode_rows(result, stats: dict[str, dict]) -> list[dict[str, Any]]:
                 "degraded": s.get("degraded"),
                 "failed_requests": s.get("failed"),
                 "first_error": s.get("first_error"),
+                "refused": s.get("refused"),
             }
         )
     return rows
@@ -254,6 +255,9 @@ def summarise(
         "degraded_answers": total("degraded"),
         "failed_requests": total("failed_requests"),
         "first_error": next((r["first_error"] for r in rows if r.get("first_error")), None),
+        # episodes the policy teleop would not drive in, and why (the first)
+        "refused_episodes": None if spec.expert else sum(bool(r.get("refused")) for r in rows),
+        "refused": next((r["refused"] for r in rows if r.get("refused")), None),
         "wall_s": round(seconds, 1),
     }
 
@@ -280,6 +284,8 @@ def format_report(rep: dict[str, Any], rows: list[dict[str, Any]]) -> str:
         ]
         if rep.get("first_error"):
             lines.append(f"- first failed request: {rep['first_error']}")
+        if rep.get("refused"):
+            lines.append(f"- the policy held the arm still in {rep['refused_episodes']} episodes: {rep['refused']}")
     lines += ["", "| seed | outcome | ticks | requests | p50 ms | underruns | file |", "|---|---|---|---|---|---|---|"]
     for r in rows:
         p50 = f"{r['latency_p50_ms']:.1f}" if r["latency_p50_ms"] is not None else "-"

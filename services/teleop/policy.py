@@ -18,12 +18,15 @@ from __future__ import annotations
 
 import json
 import logging
+import threading
 import zlib
 from pathlib import Path
 
 import numpy as np
 
+from services.core import topics
 from services.core.config import ConfigError
+from services.core.rig import Camera, camera_gap
 from services.core.robot_types import EefDelta
 from services.pb.sensors_pb2 import RobotState, TaskState
 from services.policy.client import ChunkRunner, PolicyClient, PolicyError, State
@@ -66,13 +69,85 @@ class PolicyTeleop(TeleopDriver):
         self.runner: ChunkRunner | None = None
         self.episode_id = ""
         self.first_error: str | None = None
+        self.refused: str | None = None  # why it did not drive in this episode (None: it drove)
         self.episode_stats: dict[str, dict] = {}
+        # the cameras as the policy server computes with them, and as they publish themselves
+        self._served = {c.name: c for c in info.cameras}
+        self._geometry = info.action_space == "camera" or info.state_frame == "camera"
+        self._live: dict[str, list] = {c: [None, None] for c in self.cameras}  # [calibration, pose] messages
+        self._moved: dict[str, str] = {}  # camera -> how its published calibration differs from the server's
+        self._checked: dict[str, tuple[int, int]] = {}  # camera -> the messages it was last checked with
+        self._lock = threading.Lock()
         log.info(
             "policy %s at %s: views %s, %s",
             info.model_id,
             cfg.server,
             ",".join(self.cameras),
             "blocking (lockstep)" if cfg.blocking else "real time",
+        )
+
+    def attach(self, bus) -> None:
+        """Watch the cameras' published calibration and pose: one that differs from the server's (a
+        camera moved and recalibrated since training, a server started with another rig) would turn
+        the policy's camera-frame actions the wrong way."""
+        for cam in self.cameras:
+            for i, topic in enumerate((topics.camera_calibration(cam), topics.camera_pose(cam))):
+                bus.subscribe(topic, lambda msg, rx, c=cam, i=i: self._on_camera(c, i, msg))
+
+    def _on_camera(self, cam: str, i: int, msg) -> None:  # (zenoh threads: store only)
+        with self._lock:
+            self._live[cam][i] = msg
+
+    def _check_cameras(self) -> None:
+        """Compare each camera's newest published calibration and pose with the server's (when they
+        changed), logging what starts or stops differing."""
+        with self._lock:
+            live = {c: tuple(m) for c, m in self._live.items()}
+        for cam, (calib, pose) in live.items():
+            if calib is None or pose is None or self._checked.get(cam) == (id(calib), id(pose)):
+                continue
+            self._checked[cam] = (id(calib), id(pose))
+            try:
+                camera, K = Camera.from_msgs(calib, pose)
+            except (ValueError, ZeroDivisionError) as exc:
+                log.warning("camera %s: unreadable calibration (%s): not checked against the policy server's", cam, exc)
+                continue
+            c = self._served[cam]
+            gap = camera_gap(
+                np.reshape(c.R_ext, (3, 3)),
+                c.position,
+                np.reshape(c.K, (3, 3)),
+                (c.width, c.height),
+                camera.R_ext,
+                camera.position,
+                K,
+                (int(calib.width), int(calib.height)),
+            )
+            before = self._moved.pop(cam, None)
+            if gap:
+                self._moved[cam] = gap
+                if gap != before:
+                    log.log(
+                        logging.ERROR if self._geometry else logging.WARNING,
+                        "camera %s publishes a calibration that differs from the policy server's (%s)%s",
+                        cam,
+                        gap,
+                        ": the policy holds the arm still" if self._geometry else "",
+                    )
+            elif before:
+                log.info("camera %s now matches the policy server's calibration", cam)
+
+    def _moved_cameras(self) -> str | None:
+        """Why the policy must not drive: cameras whose published calibration differs from the
+        server's, for a policy whose actions or states are in the camera frame."""
+        self._check_cameras()
+        if not self._moved or not self._geometry:
+            return None
+        return (
+            "camera "
+            + "; ".join(f"{c}: {g}" for c, g in sorted(self._moved.items()))
+            + " from the calibration the policy server computes camera-frame actions with: they would move the "
+            "arm the wrong way. Serve with the cameras' rig file (viewscale serve --rig ...), or recalibrate"
         )
 
     def _finish_episode(self) -> None:
@@ -89,6 +164,7 @@ class PolicyTeleop(TeleopDriver):
             "stale_dropped": s.stale_dropped,
             "latency_ms": [round(x * 1e3, 3) for x in lat],
             "first_error": self.first_error,  # why the first failed GetAction failed (None: none did)
+            "refused": self.refused,  # why it held the arm still instead of driving (None: it drove)
         }
         self.episode_stats[self.episode_id] = row
         if self.cfg.stats_file:
@@ -99,6 +175,7 @@ class PolicyTeleop(TeleopDriver):
         self._finish_episode()
         self.episode_id = episode_id
         self.first_error = None
+        self.refused = None
         seed = self.cfg.seed if self.cfg.seed is not None else zlib.crc32(episode_id.encode()) * 1000
         self.runner = ChunkRunner(
             self.client,
@@ -120,6 +197,9 @@ class PolicyTeleop(TeleopDriver):
             # (before: the policy drove a real arm from the teleop's start on, between episodes too)
             # the gripper kept as it is, closed on an object closed, as the devices and the safety
             # layer's holds keep it (before: the reading itself, a target where a gripper has no grip)
+            return EefDelta(np.zeros(3), np.zeros(3), 1.0 if state.gripper > 0.5 else 0.0)
+        if why := self._moved_cameras():  # (before: it drove with the server's calibration)
+            self.refused = self.refused or why  # (logged once, as it began: _check_cameras)
             return EefDelta(np.zeros(3), np.zeros(3), 1.0 if state.gripper > 0.5 else 0.0)
         if self.runner is None:
             self.reset("", state.episode_id)

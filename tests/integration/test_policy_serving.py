@@ -925,6 +925,25 @@ def test_the_chunk_runner_executes_chunks_drops_stale_actions_and_never_blocks(c
         stop(proc)
 
 
+def test_a_rig_given_to_serve_takes_the_place_of_the_checkpoints_calibration(checkpoint, tmp_path, caplog):
+    """A camera moved and recalibrated since training is served where it is now (before: the
+    checkpoint's calibration of a camera won over the rig's, and there was no way to serve it)."""
+    from services.core.rig import load_rig
+
+    rig = tmp_path / "recalibrated.yaml"
+    rig.write_text("name: recalibrated\ncameras:\n  F: {yaw_deg: 5}\n")
+    trained, _, _ = load_spec(ServerConfig(checkpoint=str(checkpoint)))
+    with caplog.at_level("WARNING", logger="services.policy.server"):
+        spec, _, _ = load_spec(ServerConfig(checkpoint=str(checkpoint), rig=str(rig), task="lift"))
+    moved = load_rig(str(rig), "lift").cameras["F"]
+    assert np.allclose(spec.cameras["F"].R_ext, moved.R_ext) and np.allclose(spec.cameras["F"].position, moved.position)
+    assert not np.allclose(spec.cameras["F"].R_ext, trained.cameras["F"].R_ext)
+    assert np.array_equal(spec.cameras["FL"].R_ext, trained.cameras["FL"].R_ext)  # the others as trained
+    said = [r.getMessage() for r in caplog.records]
+    assert len(said) == 1 and said[0].startswith(f"camera F: --rig {rig} differs from the checkpoint's training"), said
+    assert "5.00 degrees away" in said[0]
+
+
 def test_the_policy_teleop_drives_only_within_an_episode(checkpoint, observations):
     """(on hardware it drove the arm from the teleop's start on, an operator resetting the scene
     between two episodes included); `outside_episodes: true` drives there too."""
@@ -960,5 +979,77 @@ def test_the_policy_teleop_drives_only_within_an_episode(checkpoint, observation
                 assert driver.runner.stats.requests > 0
             finally:
                 driver.close()
+    finally:
+        stop(proc)
+
+
+def test_the_policy_teleop_holds_still_while_a_camera_is_calibrated_elsewhere_than_the_server_has_it(
+    checkpoint, observations, make_bus, tmp_path
+):
+    """A camera-space policy's actions are turned into the base frame with the server's calibration
+    of each view. A camera that publishes another one (moved and recalibrated since training, or a
+    server started with another rig) would send the arm the wrong way: the policy teleop holds it
+    still and says why, and drives again once they agree. Before, it drove."""
+    from services.core import topics
+    from services.core.clock import now_ns
+    from services.core.rig import load_rig
+    from services.pb.sensors_pb2 import RobotState
+    from services.teleop.base import CameraFrame
+    from services.teleop.config import PolicyTeleopConfig
+    from services.teleop.policy import PolicyTeleop
+
+    moved = tmp_path / "moved.yaml"
+    moved.write_text("name: moved\ncameras:\n  F: {yaw_deg: 5}\n")
+    proc, addr = start_server(checkpoint, "--views", "F", "--in-process")
+    try:
+        frames, states = observations[3]
+        s = states[-1]
+        seen = {"F": CameraFrame(*frames["F"][-1])}
+        msg = RobotState(tick=1, eef_pos=list(s.eef_pos), eef_quat_wxyz=list(s.eef_quat_wxyz), gripper=0.0)
+        msg.header.stamp_ns, msg.episode_id = s.stamp_ns, "ep-1"
+        driver = PolicyTeleop(PolicyTeleopConfig(server=addr, blocking=True))
+        driver.attach(make_bus())
+        camera_bus = make_bus()
+        calibration = camera_bus.publisher(topics.camera_calibration("F"))
+        pose = camera_bus.publisher(topics.camera_pose("F"))
+
+        def publish(rig: str) -> None:
+            cam = load_rig(rig, "lift").cameras["F"]
+            calibration.put(cam.calibration_msg(32, 32, now_ns()))
+            pose.put(cam.pose_msg(now_ns()))
+
+        def asks() -> int:  # GetAction requests after one more tick
+            driver.act(msg, None, seen)
+            return driver.runner.stats.requests
+
+        try:
+            driver.reset("lift", "ep-1")
+            publish("three15")  # where the checkpoint was trained: it drives
+            time.sleep(0.3)
+            assert asks() > 0 and driver.refused is None
+            publish(str(moved))
+            wait_for(lambda: driver._moved_cameras(), what="the moved camera's calibration")
+            driver.reset("lift", "ep-2")
+            held = driver.act(msg, None, seen)  # holds still, asks nothing
+            assert not held.dp.any() and not held.drot.any() and driver.runner.stats.requests == 0
+            says = driver.refused
+            assert says.startswith("camera F: placed ") and "5.00 degrees away" in says and "serve --rig" in says
+            publish("three15")  # back where the server has it
+            wait_for(lambda: not driver._moved_cameras(), what="the camera's calibration to agree again")
+            assert asks() > 0
+        finally:
+            driver.close()
+
+        # through the whole path: `viewscale eval` against this server (trained and served for
+        # lift's framing) on can, whose sim places the cameras elsewhere: held still, exit 1, why
+        out = tmp_path / "eval"
+        run = viewscale(
+            "eval", "--server", addr, "--task", "can", "--rig", "three15", "--episodes", "1", "--max-ticks", "6",
+            "--views", "F", "--out", str(out),
+        )  # fmt: skip
+        assert run.returncode == 1, run.stdout[-2000:] + run.stderr[-2000:]
+        assert "error: the policy held the arm still in 1 of 1 episodes: camera F: placed " in run.stderr
+        summary = json.loads((out / "report.json").read_text())["summary"]
+        assert summary["refused_episodes"] == 1 and summary["requests"] == 0
     finally:
         stop(proc)
