@@ -74,9 +74,9 @@ class PolicyTeleop(TeleopDriver):
         # the cameras as the policy server computes with them, and as they publish themselves
         self._served = {c.name: c for c in info.cameras}
         self._geometry = info.action_space == "camera" or info.state_frame == "camera"
-        self._live: dict[str, list] = {c: [None, None] for c in self.cameras}  # [calibration, pose] messages
+        self._live: dict[str, list] = {c: [None, None, 0] for c in self.cameras}  # [calibration, pose, version]
         self._moved: dict[str, str] = {}  # camera -> how its published calibration differs from the server's
-        self._checked: dict[str, tuple[int, int]] = {}  # camera -> the messages it was last checked with
+        self._checked: dict[str, int] = {}  # camera -> the version of its messages last checked
         self._lock = threading.Lock()
         log.info(
             "policy %s at %s: views %s, %s",
@@ -97,16 +97,17 @@ class PolicyTeleop(TeleopDriver):
     def _on_camera(self, cam: str, i: int, msg) -> None:  # (zenoh threads: store only)
         with self._lock:
             self._live[cam][i] = msg
+            self._live[cam][2] += 1
 
     def _check_cameras(self) -> None:
         """Compare each camera's newest published calibration and pose with the server's (when they
         changed), logging what starts or stops differing."""
         with self._lock:
             live = {c: tuple(m) for c, m in self._live.items()}
-        for cam, (calib, pose) in live.items():
-            if calib is None or pose is None or self._checked.get(cam) == (id(calib), id(pose)):
+        for cam, (calib, pose, version) in live.items():
+            if calib is None or pose is None or self._checked.get(cam) == version:
                 continue
-            self._checked[cam] = (id(calib), id(pose))
+            self._checked[cam] = version
             try:
                 camera, K = Camera.from_msgs(calib, pose)
             except (ValueError, ZeroDivisionError) as exc:
