@@ -335,10 +335,10 @@ def _check(args: argparse.Namespace) -> int:
     os.environ.setdefault("MUJOCO_GL", "egl")  # a sim rig renders headless, as the camera service does
     from services.core.cli_args import service_overrides
     from services.core.config import ConfigError
-    from services.session.check import run_check
+    from services.session.check import PARTS, run_check
 
     try:  # (a service check reads no settings of, sim.x=1, was ignored without a word before)
-        overrides = service_overrides(args.set, ("camera", "robot"))
+        overrides = service_overrides(args.set, ("camera", "robot", "teleop"))
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
@@ -349,10 +349,10 @@ def _check(args: argparse.Namespace) -> int:
     if not args.max_age_days >= 0:
         print(f"error: --max-age-days must be 0 or more, got {args.max_age_days:g}", file=sys.stderr)
         return 2
-    every = ["cameras", "calibration", "robot"]
-    parts = every if args.only is None else [p.strip() for p in args.only.split(",") if p.strip()]
-    unknown = sorted(set(parts) - set(every))
-    if unknown or not parts:
+    every = list(PARTS)
+    parts = None if args.only is None else [p.strip() for p in args.only.split(",") if p.strip()]
+    unknown = sorted(set(parts or []) - set(every))
+    if unknown or parts == []:
         print(f"error: --only {', '.join(unknown) or args.only}: choose from {', '.join(every)}", file=sys.stderr)
         return 2
     try:
@@ -527,7 +527,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--config", required=True, help="the session's YAML (e.g. deploy/real.yaml)")
     p.add_argument("--seconds", type=float, default=3.0, help="how long to measure each camera (default 3)")
-    p.add_argument("--only", help="some parts only: cameras, calibration, robot (comma-separated)")
+    p.add_argument(
+        "--only",
+        help="some parts only: cameras, calibration, robot, policy (comma-separated; policy: the server "
+        "a policy teleop drives with, checked by default where the session has one)",
+    )
     p.add_argument(
         "--max-error-px", type=float, default=1.0, help="largest reprojection error accepted (default 1.0 px)"
     )

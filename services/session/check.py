@@ -2,9 +2,11 @@
 
 Before a collection session a lab wants one answer per part, in plain words, from the same
 config the session will run with: every camera opens and delivers frames at the rate asked, the
-calibration file describes these cameras (names, image sizes, reprojection error, age), and the
-arm answers with a state inside the workspace. Each part is checked through the same driver
-registry the services use, so what passes here is what the services will open. Nothing is
+calibration file describes these cameras (names, image sizes, reprojection error, age), the
+arm answers with a state inside the workspace, and, where the teleop drives with a policy, its
+server answers and the policy fits the session (views, frame size, control rate, camera poses).
+Each part is checked through the same driver registry the services use, so what passes here is
+what the services will open. Nothing is
 published and no episode is started; the robot is connected to and read, never moved (a driver
 may still set up its control channel: the UR driver uploads its control script on connect).
 
@@ -17,6 +19,7 @@ from __future__ import annotations
 import time
 from collections.abc import Iterable
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -24,8 +27,11 @@ from services.calibration.check import check_rig
 from services.camera.config import CAMERA_DRIVERS, CameraConfig, stand_in_rig
 from services.core.clock import Rate, now_ns
 from services.core.config import ConfigError, load_config
-from services.core.rig import Rig, load_rig
+from services.core.rig import Rig, camera_gap, load_rig
 from services.robot.config import ROBOT_DRIVERS, RobotConfig
+from services.teleop.config import TeleopConfig
+
+PARTS = ("cameras", "calibration", "robot", "policy")
 
 
 @dataclass(frozen=True)
@@ -178,6 +184,102 @@ def robot_findings(cfg: RobotConfig) -> list[Finding]:
     return [Finding("robot", True, text)]
 
 
+def policy_findings(teleop: TeleopConfig, cameras: CameraConfig, robot: RobotConfig) -> list[Finding]:
+    """The policy server a policy teleop would drive with: it answers, and what it was trained with
+    fits this session: the views are cameras here, sent at the size the policy expects, at the
+    control rate it was trained at, and (a camera-space policy) placed where the server has them.
+    Each of these, wrong, fails every GetAction or moves the arm wrong in the session itself."""
+    from services.policy.client import PolicyClient, PolicyError
+
+    d = teleop.driver
+    if d.type != "policy":
+        return [Finding("policy", False, f"teleop.driver.type is {d.type}, not policy: there is no policy to check")]
+    try:
+        ca = Path(d.tls_ca).read_bytes() if d.tls_ca else None
+        with PolicyClient(
+            d.server, session_id="check", token=d.token, tls_ca=ca, connect_timeout_s=min(d.connect_timeout_s, 10.0)
+        ) as client:
+            info = client.info
+    except (PolicyError, OSError, ValueError) as exc:
+        return [Finding("policy", False, f"{d.server}: {_describe_error(exc)}")]
+    served = {c.name: c for c in info.cameras}
+    views = list(d.views or info.default_views)
+    findings = [
+        Finding(
+            "policy",
+            True,
+            f"{info.model_id} at {d.server}: {info.action_space} space, views {','.join(views)}, "
+            f"trained at {info.control_hz:g} Hz",
+        )
+    ]
+    if abs(info.control_hz - robot.control_hz) > 1e-3 * info.control_hz:
+        findings.append(
+            Finding(
+                "policy",
+                False,
+                f"the policy was trained at {info.control_hz:g} Hz, the robot ticks at {robot.control_hz:g} Hz "
+                "(robot.control_hz): each action is one tick's motion, so the arm would move "
+                f"{robot.control_hz / info.control_hz:.2f}x as fast; set robot.control_hz to {info.control_hz:g}",
+            )
+        )
+    names = list(getattr(cameras.driver, "cameras", None) or [])
+    try:  # (a sim rig is framed for the sim's task)
+        rig = load_rig(cameras.rig, getattr(cameras.driver, "task", None))
+    except ConfigError as exc:
+        rig = None
+        findings.append(Finding("policy", False, f"camera.rig {cameras.rig!r}: {_describe_error(exc)}"))
+    names = names or (rig.names if rig is not None else [])
+    camera_space = info.action_space == "camera" or info.state_frame == "camera"
+    for v in views:
+        part = f"policy view {v}"
+        if v not in served:
+            findings.append(Finding(part, False, f"the policy server has no camera {v} ({', '.join(served)})"))
+            continue
+        if names and v not in names:
+            findings.append(Finding(part, False, f"this session has no camera {v} ({', '.join(names)})"))
+            continue
+        c = served[v]
+        if (c.width, c.height) != (cameras.width, cameras.height):
+            findings.append(
+                Finding(
+                    part,
+                    False,
+                    f"the camera service sends {cameras.width}x{cameras.height} frames, the policy server expects "
+                    f"{c.width}x{c.height} (the size its demonstrations were recorded at): every GetAction "
+                    f"would be refused; set camera.width/height to {c.width}x{c.height}",
+                )
+            )
+            continue
+        if not camera_space or rig is None or v not in rig.cameras:
+            findings.append(Finding(part, True, f"{c.width}x{c.height}"))
+            continue
+        here = rig.cameras[v]
+        K = here.K(c.width, c.height)
+        gap = camera_gap(
+            np.reshape(c.R_ext, (3, 3)),
+            c.position,
+            np.reshape(c.K, (3, 3)),
+            (c.width, c.height),
+            here.R_ext,
+            here.position,
+            K,
+            (c.width, c.height),
+        )
+        if gap:
+            findings.append(
+                Finding(
+                    part,
+                    False,
+                    f"camera.rig {cameras.rig} has it {gap} from the calibration the policy server computes its "
+                    f"camera-frame actions with (they would move the arm the wrong way): serve with "
+                    f"--rig {cameras.rig}",
+                )
+            )
+        else:
+            findings.append(Finding(part, True, f"{c.width}x{c.height}, placed as the server has it"))
+    return findings
+
+
 def run_check(
     config: str | None,
     overrides: dict[str, list[str]] | None = None,
@@ -185,11 +287,13 @@ def run_check(
     min_fps_fraction: float = 0.9,
     max_error_px: float = 1.0,
     max_age_days: float = 30.0,
-    parts: Iterable[str] = ("cameras", "calibration", "robot"),
+    parts: Iterable[str] | None = None,
 ) -> list[Finding]:
-    """Every finding for the session ``config`` describes (sections ``camera`` and ``robot``)."""
+    """Every finding for the session ``config`` describes (sections ``camera``, ``robot`` and
+    ``teleop``). ``parts``: None for all (the policy only where the teleop drives with one)."""
     overrides = overrides or {}
-    parts = set(parts)
+    default_parts = parts is None
+    parts = set(PARTS if parts is None else parts)
     findings: list[Finding] = []
     sizes: dict[str, tuple[int, int]] | None = None
     if parts & {"cameras", "calibration"}:
@@ -224,4 +328,12 @@ def run_check(
     if "robot" in parts:
         robot_cfg = load_config(RobotConfig, config, overrides.get("robot", []), section="robot")
         findings += robot_findings(robot_cfg)
+    if "policy" in parts:
+        teleop_cfg = load_config(TeleopConfig, config, overrides.get("teleop", []), section="teleop")
+        if teleop_cfg.driver.type == "policy" or not default_parts:
+            findings += policy_findings(
+                teleop_cfg,
+                load_config(CameraConfig, config, overrides.get("camera", []), section="camera"),
+                load_config(RobotConfig, config, overrides.get("robot", []), section="robot"),
+            )
     return findings

@@ -67,15 +67,20 @@ def test_an_arm_outside_the_workspace_and_a_missing_camera_fail_in_plain_words(t
 def test_bad_arguments_are_one_error_line(tmp_path):
     proc = viewscale("check", "--config", str(sim_config(tmp_path)), "--only", "cameras,wheels")
     assert proc.returncode == 2
-    assert proc.stderr.strip().splitlines() == ["error: --only wheels: choose from cameras, calibration, robot"]
+    assert proc.stderr.strip().splitlines() == [
+        "error: --only wheels: choose from cameras, calibration, robot, policy"
+    ]
     for args, says in [
         (["--seconds", "0"], "error: --seconds must be positive, got 0"),  # was 7 FAIL lines
         # taken before; on a real rig every camera's calibration would have failed
         (["--max-error-px", "-1"], "error: --max-error-px must be positive, got -1"),
         (["--max-age-days", "-3"], "error: --max-age-days must be 0 or more, got -3"),
-        (["--only", ","], "error: --only ,: choose from cameras, calibration, robot"),  # was '--only : ...'
+        (["--only", ","], "error: --only ,: choose from cameras, calibration, robot, policy"),  # was '--only : ...'
         # a section check reads nothing of (before: ignored without a word, exit 0)
-        (["--set", "sim.x=1"], "error: --set 'sim.x=1' must look like camera.KEY=VALUE or robot.KEY=VALUE"),
+        (
+            ["--set", "sim.x=1"],
+            "error: --set 'sim.x=1' must look like camera.KEY=VALUE or robot.KEY=VALUE or teleop.KEY=VALUE",
+        ),
     ]:
         proc = viewscale("check", "--config", str(sim_config(tmp_path)), *args)
         assert proc.returncode == 2
@@ -152,3 +157,46 @@ def test_a_stream_that_refuses_is_said_once_in_plain_words(tmp_path):
         and "FAIL  cameras        opencv: camera F: cannot open rtsp://127.0.0.1:1/x" in proc.stdout
     )
     assert "WARN" not in proc.stdout + proc.stderr, proc.stderr
+
+
+def test_the_policy_a_session_drives_with_is_checked_against_the_session(tiny_checkpoint, tmp_path):
+    """A session whose teleop drives with a policy: its server answers, and the policy fits the
+    session (views that are cameras here, at the frame size and control rate it was trained at,
+    placed where the server has them). Before, nothing looked: a wrong size failed every GetAction
+    in the session, a wrong rate moved the arm 1.5x as fast, a moved camera turned its actions."""
+    from services.session.evaluate import PolicyServer
+
+    moved = tmp_path / "moved.yaml"
+    moved.write_text("name: moved\ncameras:\n  F: {yaw_deg: 5}\n  FL: {yaw_deg: 15}\n  FR: {yaw_deg: -15}\n")
+    cfg = sim_config(tmp_path, width=32, height=32)
+    data = yaml.safe_load(cfg.read_text())
+    with PolicyServer(str(tiny_checkpoint), tmp_path / "serve", None, 0, "three15", "lift") as server:
+        data["teleop"] = {"driver": {"type": "policy", "server": server.address, "views": ["F", "FL"]}}
+        cfg.write_text(yaml.safe_dump(data))
+        proc = viewscale("check", "--config", str(cfg), "--only", "policy")
+        assert proc.returncode == 0, proc.stdout + proc.stderr
+        lines = proc.stdout.splitlines()
+        assert lines[0].startswith("ok    policy") and "camera space, views F,FL, trained at 20 Hz" in lines[0]
+        assert [ln.split()[3] for ln in lines[1:3]] == ["F", "FL"] and "placed as the server has it" in lines[1]
+
+        proc = viewscale(
+            "check", "--config", str(cfg), "--only", "policy", "--set", "robot.control_hz=30",
+            "--set", "camera.width=64", "--set", "camera.height=64",
+        )  # fmt: skip
+        assert proc.returncode == 1, proc.stdout
+        fails = [ln for ln in proc.stdout.splitlines() if ln.startswith("FAIL")]
+        assert "trained at 20 Hz, the robot ticks at 30 Hz" in fails[0] and "set robot.control_hz to 20" in fails[0]
+        assert "sends 64x64 frames, the policy server expects 32x32" in fails[1] and len(fails) == 3
+
+        proc = viewscale("check", "--config", str(cfg), "--only", "policy", "--set", f"camera.rig={moved}")
+        assert proc.returncode == 1, proc.stdout
+        [fail] = [ln for ln in proc.stdout.splitlines() if ln.startswith("FAIL")]
+        assert fail.startswith("FAIL  policy view F ") and "5.00 degrees away" in fail and f"--rig {moved}" in fail
+    proc = viewscale("check", "--config", str(cfg), "--only", "policy", "--set", "teleop.driver.connect_timeout_s=2")
+    assert proc.returncode == 1 and "no policy server at" in proc.stdout, proc.stdout  # (the server stopped)
+    data["teleop"] = {"driver": {"type": "keyboard"}}
+    cfg.write_text(yaml.safe_dump(data))
+    proc = viewscale("check", "--config", str(cfg), "--seconds", "1")  # no policy: not checked, not failed
+    assert proc.returncode == 0 and "policy" not in proc.stdout, proc.stdout
+    proc = viewscale("check", "--config", str(cfg), "--only", "policy")
+    assert proc.returncode == 1 and "teleop.driver.type is keyboard, not policy" in proc.stdout
