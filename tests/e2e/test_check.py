@@ -67,9 +67,7 @@ def test_an_arm_outside_the_workspace_and_a_missing_camera_fail_in_plain_words(t
 def test_bad_arguments_are_one_error_line(tmp_path):
     proc = viewscale("check", "--config", str(sim_config(tmp_path)), "--only", "cameras,wheels")
     assert proc.returncode == 2
-    assert proc.stderr.strip().splitlines() == [
-        "error: --only wheels: choose from cameras, calibration, robot, policy"
-    ]
+    assert proc.stderr.strip().splitlines() == ["error: --only wheels: choose from cameras, calibration, robot, policy"]
     for args, says in [
         (["--seconds", "0"], "error: --seconds must be positive, got 0"),  # was 7 FAIL lines
         # taken before; on a real rig every camera's calibration would have failed
