@@ -232,3 +232,22 @@ def test_the_operator_hears_the_arms_state_for_a_hand_eye_capture(open_bus):
             continue
     else:
         pytest.fail("the operator never heard robot/state")
+
+
+def test_the_teleop_hears_the_cameras_calibration_and_pose(open_bus):
+    """The policy teleop compares each camera's published calibration and pose with the policy
+    server's before it drives (before: the router let the teleop user hear only camera images, and
+    on an authenticated bus the check saw nothing, so it never held a moved camera's policy)."""
+    from services.core.rig import load_rig
+
+    teleop = open_bus("teleop")
+    heard = {"calibration": Heard(teleop, "camera/F/calibration"), "pose": Heard(teleop, "camera/F/pose")}
+    camera = open_bus("camera")
+    cam = load_rig("three15").cameras["F"]
+    calibration, pose = camera.publisher(topics.camera_calibration("F")), camera.publisher(topics.camera_pose("F"))
+    deadline = time.monotonic() + 10
+    while not all(h.keys() for h in heard.values()):  # until the teleop's subscriptions reached the router
+        assert time.monotonic() < deadline, {k: h.keys() for k, h in heard.items()}
+        calibration.put(cam.calibration_msg(32, 32, time.time_ns()))
+        pose.put(cam.pose_msg(time.time_ns()))
+        time.sleep(0.1)
