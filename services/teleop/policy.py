@@ -77,6 +77,7 @@ class PolicyTeleop(TeleopDriver):
         self._live: dict[str, list] = {c: [None, None, 0] for c in self.cameras}  # [calibration, pose, version]
         self._moved: dict[str, str] = {}  # camera -> how its published calibration differs from the server's
         self._checked: dict[str, int] = {}  # camera -> the version of its messages last checked
+        self._unheard_said = False  # a camera whose calibration never came was logged
         self._lock = threading.Lock()
         log.info(
             "policy %s at %s: views %s, %s",
@@ -142,6 +143,15 @@ class PolicyTeleop(TeleopDriver):
         """Why the policy must not drive: cameras whose published calibration differs from the
         server's, for a policy whose actions or states are in the camera frame."""
         self._check_cameras()
+        if self._geometry and not self._unheard_said:
+            unheard = sorted(c for c in self.cameras if c not in self._checked)
+            if unheard:  # (a camera service always publishes them: a bus that passes the images only?)
+                self._unheard_said = True
+                log.warning(
+                    "no calibration and pose heard from camera %s: it is not checked against the policy "
+                    "server's (does this user hear camera/*/calibration and camera/*/pose?)",
+                    ", ".join(unheard),
+                )
         if not self._moved or not self._geometry:
             return None
         return (

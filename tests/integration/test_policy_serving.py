@@ -944,7 +944,7 @@ def test_a_rig_given_to_serve_takes_the_place_of_the_checkpoints_calibration(che
     assert "5.00 degrees away" in said[0]
 
 
-def test_the_policy_teleop_drives_only_within_an_episode(checkpoint, observations):
+def test_the_policy_teleop_drives_only_within_an_episode(checkpoint, observations, caplog):
     """(on hardware it drove the arm from the teleop's start on, an operator resetting the scene
     between two episodes included); `outside_episodes: true` drives there too."""
     from services.pb.sensors_pb2 import RobotState
@@ -975,8 +975,14 @@ def test_the_policy_teleop_drives_only_within_an_episode(checkpoint, observation
                     # reading, where a gripper holds no grip; and again at every tick's reading)
                     assert driver.act(state("", 0.8), None, seen).gripper == 1.0
                 driver.reset("lift", "ep-1")
-                driver.act(state("ep-1"), None, seen)
+                with caplog.at_level("WARNING", logger="services.teleop.policy"):
+                    driver.act(state("ep-1"), None, seen)
+                    driver.act(state("ep-1"), None, seen)
                 assert driver.runner.stats.requests > 0
+                # attached to no bus, it heard no calibration: said once, as it began to drive
+                unheard = [r.getMessage() for r in caplog.records if "no calibration and pose heard" in r.getMessage()]
+                assert len(unheard) == 1 and unheard[0].startswith("no calibration and pose heard from camera F:")
+                caplog.clear()
             finally:
                 driver.close()
     finally:
