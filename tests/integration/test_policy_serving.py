@@ -1059,3 +1059,36 @@ def test_the_policy_teleop_holds_still_while_a_camera_is_calibrated_elsewhere_th
         assert summary["refused_episodes"] == 1 and summary["requests"] == 0
     finally:
         stop(proc)
+
+
+def test_a_getaction_that_fails_every_tick_is_logged_once_a_while_not_every_tick(checkpoint, caplog):
+    """Frames of another size than the policy's (a camera service set up otherwise): every
+    GetAction is refused. The policy teleop holds still and says why, once, then how many more
+    failed (before: a warning per tick, 20 lines a second, for as long as it lasted)."""
+    import cv2
+
+    from services.pb.sensors_pb2 import RobotState
+    from services.teleop.base import CameraFrame
+    from services.teleop.config import PolicyTeleopConfig
+    from services.teleop.policy import PolicyTeleop
+
+    proc, addr = start_server(checkpoint, "--views", "F", "--in-process")
+    try:
+        jpeg = cv2.imencode(".jpg", np.zeros((16, 16, 3), np.uint8))[1].tobytes()  # the policy's are 32x32
+        driver = PolicyTeleop(PolicyTeleopConfig(server=addr, blocking=True))
+        try:
+            driver.reset("lift", "ep-1")
+            with caplog.at_level("WARNING", logger="services.teleop.policy"):
+                for tick in range(30):
+                    msg = RobotState(tick=tick, eef_pos=[0.45, 0.0, 0.25], eef_quat_wxyz=[0.0, 1.0, 0.0, 0.0])
+                    msg.header.stamp_ns, msg.episode_id = time.time_ns(), "ep-1"
+                    held = driver.act(msg, None, {"F": CameraFrame(jpeg, msg.header.stamp_ns)})
+                    assert not held.dp.any()
+            assert driver.runner.stats.failed == 30 and "INVALID_ARGUMENT" in driver.first_error
+            said = [r.getMessage() for r in caplog.records if "GetAction failed" in r.getMessage()]
+            assert 1 <= len(said) <= 3, said  # the first, then at most one line every 5 s
+            assert "16x16" in said[0] or "size" in said[0], said[0]
+        finally:
+            driver.close()
+    finally:
+        stop(proc)
