@@ -29,6 +29,7 @@ from services.core import topics
 from services.core.bus import Bus, Received
 from services.core.clock import Rate, now_ns
 from services.core.robot_types import EefDelta, action_from_msg, action_msg, state_msg
+from services.core.throttle import Throttle
 from services.core.validation import check
 from services.pb.common_pb2 import Header
 from services.pb.control_pb2 import AppliedAction, EefCommand
@@ -66,6 +67,7 @@ class ControlLoop:
         self.clipped_ticks = 0  # ticks whose command the safety layer changed
         self.fault_ticks = 0  # ticks the arm could not move (a driver fault: protective stop, lost connection)
         self.rejected = Counter()  # reason -> count of commands we could not use
+        self._say = Throttle(log)  # a rejected or malformed command every tick: not a line every tick
         self._seq = 0
         self._cv = threading.Condition()
         self._latest: tuple[int, EefDelta] | None = None  # (tick, validated action)
@@ -82,7 +84,8 @@ class ControlLoop:
             delta = action_from_msg(msg.action)
         except ValueError as exc:
             self.rejected["invalid"] += 1
-            log.warning("rejected command on %s for tick %d: %s", rx.key, msg.tick, exc)
+            # (before: a line per command, 20 a second from a teleop that sent such every tick)
+            self._say(logging.WARNING, f"rejected command on {rx.key} for tick {msg.tick}: {exc}")
             return
         with self._cv:
             self._latest = (msg.tick, delta)
@@ -90,7 +93,7 @@ class ControlLoop:
 
     def _on_malformed(self, rx: Received, exc: Exception) -> None:
         self.rejected["malformed"] += 1
-        log.warning("malformed payload on %s (%d bytes): %s", rx.key, len(rx.payload), exc)
+        self._say(logging.WARNING, f"malformed payload on {rx.key} ({len(rx.payload)} bytes): {exc}")
 
     def _wait_command(self, tick: int, deadline: float) -> EefDelta | None:
         with self._cv:

@@ -18,9 +18,7 @@ from __future__ import annotations
 
 import json
 import logging
-import re
 import threading
-import time
 import zlib
 from pathlib import Path
 
@@ -30,14 +28,13 @@ from services.core import topics
 from services.core.config import ConfigError
 from services.core.rig import Camera, camera_gap
 from services.core.robot_types import EefDelta
+from services.core.throttle import Throttle
 from services.pb.sensors_pb2 import RobotState, TaskState
 from services.policy.client import ChunkRunner, PolicyClient, PolicyError, State
 from services.teleop.base import CameraFrame, TeleopDriver
 from services.teleop.config import PolicyTeleopConfig
 
 log = logging.getLogger(__name__)
-
-_ERROR_EVERY_S = 5.0  # the same GetAction failure is logged again after this long at the earliest
 
 
 class PolicyTeleop(TeleopDriver):
@@ -82,7 +79,7 @@ class PolicyTeleop(TeleopDriver):
         self._moved: dict[str, str] = {}  # camera -> how its published calibration differs from the server's
         self._checked: dict[str, int] = {}  # camera -> the version of its messages last checked
         self._unheard_said = False  # a camera whose calibration never came was logged
-        self._last_error, self._last_error_at, self._errors_unsaid = "", 0.0, 0  # failed GetActions logged
+        self._errors = Throttle(log)  # failed GetActions
         self._lock = threading.Lock()
         log.info(
             "policy %s at %s: views %s, %s",
@@ -203,18 +200,11 @@ class PolicyTeleop(TeleopDriver):
         )
 
     def _on_error(self, exc: PolicyError) -> None:
-        """Log a failed GetAction; the same failure again is logged once every ``_ERROR_EVERY_S``, with
-        how many it stands for (before: a line per tick, 20 a second, while a server refused)."""
         if self.first_error is None:
             self.first_error = str(exc)
-        now = time.monotonic()
-        reason = re.sub(r"\d+", "#", str(exc))  # (the request's seq and such change every time)
-        if reason == self._last_error and now - self._last_error_at < _ERROR_EVERY_S:
-            self._errors_unsaid += 1
-            return
-        more = f" ({self._errors_unsaid} more since the last line)" if self._errors_unsaid else ""
-        log.warning("GetAction failed in %s: %s (holding still)%s", self.episode_id, exc, more)
-        self._last_error, self._last_error_at, self._errors_unsaid = reason, now, 0
+        # the same failure at every tick: logged once, then once every 5 s with how many it stands for
+        # (before: a line per tick, 20 a second while a server refused every request)
+        self._errors(logging.WARNING, f"GetAction failed in {self.episode_id}: {exc} (holding still)")
 
     def act(self, state: RobotState, task: TaskState | None, frames: dict[str, CameraFrame]) -> EefDelta:
         if not state.episode_id and not self.cfg.outside_episodes:

@@ -670,3 +670,18 @@ def test_viewscale_check_reports_a_ready_arm_a_stopped_one_and_one_it_cannot_rea
 
     [unreachable] = robot_findings(RobotConfig(world="real", driver=URRobotConfig(host="ur-nowhere")))
     assert not unreachable.ok and "cannot connect" in unreachable.text and "ur-nowhere" in unreachable.text
+
+
+def test_a_teleop_that_sends_bad_commands_every_tick_is_logged_once_a_while(fake_ur, session, caplog):
+    """Commands the robot service rejects (a step over 1 m), one a tick: each is counted and the arm
+    holds, and the log says it once, then once every 5 s (before: a line per command, 20 a second)."""
+    fake_ur()
+    s = session()
+    with caplog.at_level("WARNING", logger="services.robot.loop"):
+        s.teleop.action = ([1.5, 0.0, 0.0], [0.0, 0.0, 0.0], 0.0)
+        n0 = len(s.teleop.applied)
+        ran = s.teleop.wait(lambda a: len(a) >= n0 + 30, what="30 ticks")
+        assert all(a.stale for a in ran[n0 + 2 :])  # held still: the command was not used
+        assert s.service.loop.rejected["invalid"] >= 28
+    said = [r.getMessage() for r in caplog.records if "rejected command" in r.getMessage()]
+    assert 1 <= len(said) <= 2 and "1.5" in said[0], said
