@@ -85,7 +85,10 @@ def _build(args: argparse.Namespace) -> int:
                 include_failed=args.include_failed,
                 include_rollouts=args.include_rollouts,
             )
-    except (DatasetError, EpisodeError, OutputError) as exc:
+    except EpisodeError as exc:  # one episode that cannot be built stops the build: say how to go on
+        many = len(episodes) > 1 and not args.skip_bad
+        return _err(str(exc) + ("; --skip-bad builds the other episodes and lists this one" if many else ""))
+    except (DatasetError, OutputError) as exc:
         return _err(str(exc))
     except OSError as exc:  # an unwritable output, a full disk
         if exc.errno is None:  # numpy's short write ('677376 requested and 655232 written'): say what it means

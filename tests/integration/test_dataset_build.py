@@ -458,9 +458,9 @@ def test_episodes_with_wrong_values_are_one_clear_error_or_skipped_with_their_re
     assert viewscale(args) == 2
     err = capsys.readouterr().err
     assert "Traceback" not in err
-    assert (
-        err.strip().splitlines()[-1]
-        == "error: nan-pose.mcap: robot state of tick 7: non-finite: eef_pos = [0.4, nan, 0.2]"
+    assert err.strip().splitlines()[-1] == (
+        "error: nan-pose.mcap: robot state of tick 7: non-finite: eef_pos = [0.4, nan, 0.2]; "
+        "--skip-bad builds the other episodes and lists this one"  # (before: no word of how to go on)
     )
     assert viewscale([*args, "--skip-bad"]) == 0
     out = capsys.readouterr()
