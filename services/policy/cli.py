@@ -220,7 +220,7 @@ def add_policy_commands(subparsers: argparse._SubParsersAction) -> None:
         help="rig preset or YAML: cameras the checkpoint was not trained on, or recalibrated since "
         "(its cameras take the place of the checkpoint's of the same name)",
     )
-    p.add_argument("--task", help="with --rig: the task whose framing the rig takes")
+    p.add_argument("--task", help="with --rig: the task whose framing a sim rig takes (default: the checkpoint's)")
     p.add_argument("--log-dir", help="write local workers' logs here")
     p.add_argument("--config", help="YAML with a `policy` section")
     p.add_argument(

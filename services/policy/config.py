@@ -94,7 +94,7 @@ class ServerConfig(Frozen):
     listen: Listen = "127.0.0.1:50051"  # host:port; loopback unless you mean it (0.0.0.0 = every interface)
     views: list[str] | None = None  # cameras composed when a request names none (default: the training views)
     rig: str | None = None  # rig preset or YAML: cameras added, or in place of the checkpoint's (recalibrated)
-    task: str | None = None  # with rig: the task whose framing the rig takes (sim rigs frame per task)
+    task: str | None = None  # with rig: the task whose framing a sim rig takes (default: the checkpoint's)
     workers: int = Field(0, ge=0)  # local worker processes to start (0 with no addresses: in-process)
     worker: list[str] = Field(default_factory=list)  # addresses of running workers (host:port, or dns:///name:port)
     in_process: bool = False  # compute every view in this process even when workers are given

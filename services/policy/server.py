@@ -1120,7 +1120,10 @@ def load_spec(cfg) -> tuple[PolicySpec, NoiseConfig, dict[str, Any]]:
         w, h = (
             (int(cal["source_width"]), int(cal["source_height"])) if cal else tuple(info["model"]["image_size"][::-1])
         )
-        extra = rig_cameras(cfg.rig, cfg.task, w, h)
+        # a sim rig is framed per task: by default the checkpoint's (before: the default framing,
+        # which for a checkpoint of another task placed every camera elsewhere)
+        task = cfg.task or next(iter(info.get("tasks") or []), None)
+        extra = rig_cameras(cfg.rig, task, w, h)
     trained = PolicySpec.from_info(info, sha, model_id(cfg.checkpoint)).cameras
     for name in sorted(set(extra) & set(trained)):
         a, b = trained[name], extra[name]

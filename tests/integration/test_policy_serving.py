@@ -943,6 +943,17 @@ def test_a_rig_given_to_serve_takes_the_place_of_the_checkpoints_calibration(che
     assert len(said) == 1 and said[0].startswith(f"camera F: --rig {rig} differs from the checkpoint's training"), said
     assert "5.00 degrees away" in said[0]
 
+    # a sim rig is framed for a task: with no --task, the checkpoint's (here made a can checkpoint;
+    # before: lift's framing, half a metre from can's, for every camera)
+    can = tmp_path / "can-checkpoint"
+    shutil.copytree(latest_checkpoint(checkpoint), can)
+    info = json.loads((can / POLICY_FILE).read_text())
+    (can / POLICY_FILE).write_text(json.dumps({**info, "tasks": ["can"]}))
+    served = load_spec(ServerConfig(checkpoint=str(can), rig="three15"))[0].cameras
+    framed = load_spec(ServerConfig(checkpoint=str(can), rig="three15", task="can"))[0].cameras
+    assert np.array_equal(served["F"].position, framed["F"].position)
+    assert not np.allclose(served["F"].position, load_rig("three15", "lift").cameras["F"].position)
+
 
 def test_the_policy_teleop_drives_only_within_an_episode(checkpoint, observations, caplog):
     """(on hardware it drove the arm from the teleop's start on, an operator resetting the scene
