@@ -11,7 +11,6 @@ Malformed payloads are counted and logged, never fatal.
 from __future__ import annotations
 
 import logging
-import re
 import threading
 import time
 from collections import Counter, OrderedDict, deque
@@ -23,6 +22,7 @@ from services.core.bus import Bus, Received
 from services.core.clock import now_ns
 from services.core.robot_types import action_msg
 from services.core.runtime import refuse_rivals, serve
+from services.core.throttle import Throttle
 from services.core.validation import Invalid, check
 from services.pb.common_pb2 import Header
 from services.pb.control_pb2 import EefCommand
@@ -56,7 +56,7 @@ class TeleopService:
             bus.subscribe(topics.TASK_STATE, self._on_task, on_error=self._on_malformed)
         self._frames: dict[str, deque[CameraFrame]] = {c: deque(maxlen=8) for c in driver.cameras}
         self._frame_rx: dict[str, int] = {}  # camera -> when its newest frame arrived (ns)
-        self._last_failure = ("", 0.0)  # (reason, monotonic time): one repeated every tick is logged once a second
+        self._failed = Throttle(log, every_s=1.0)  # a failure repeated every tick: logged once a second, counted
         for cam in driver.cameras:
             bus.subscribe(topics.camera_image(cam), self._on_frame, on_error=self._on_malformed)
         driver.attach(bus)
@@ -146,14 +146,6 @@ class TeleopService:
                 "no command until it sends again"
             )
 
-    def _log_failure(self, text: str, reason: str) -> None:
-        """Log a failed tick; the same reason again within a second is not logged again."""
-        last, when = self._last_failure
-        key = re.sub(r"\d+(\.\d+)?", "#", reason)  # (a gap that grows every tick is the same reason)
-        if key != last or time.monotonic() - when > 1.0:
-            log.warning("%s", text)
-            self._last_failure = (key, time.monotonic())
-
     def run(self, stop: threading.Event) -> None:
         while not stop.is_set():
             item = self._next(stop)
@@ -171,7 +163,7 @@ class TeleopService:
                 delta = self.driver.act(state, task, frames)
             except Exception as exc:  # no command: the robot holds still and flags the tick stale
                 self.errors += 1
-                self._log_failure(f"teleop driver failed at tick {state.tick} of {state.episode_id}: {exc}", str(exc))
+                self._failed(logging.WARNING, f"teleop driver failed at tick {state.tick} of {state.episode_id}: {exc}")
                 continue
             self._seq += 1
             self._pub.put(
