@@ -175,6 +175,21 @@ def camera_gap(
     return ", ".join(parts)
 
 
+def served_camera_gap(served, camera: Camera, K: np.ndarray, size: tuple[int, int]) -> str:
+    """``camera_gap`` from a camera as a policy server describes it (a ``CameraInfo``: row-major
+    ``R_ext`` and ``K`` at ``width`` x ``height``, ``position``) to ``camera`` with ``K`` at ``size``."""
+    return camera_gap(
+        np.reshape(served.R_ext, (3, 3)),
+        served.position,
+        np.reshape(served.K, (3, 3)),
+        (served.width, served.height),
+        camera.R_ext,
+        camera.position,
+        K,
+        size,
+    )
+
+
 def distort(xy: np.ndarray, D: np.ndarray) -> np.ndarray:
     """(N, 2) normalised image coordinates -> distorted ones (OpenCV plumb_bob, k1 k2 p1 p2 [k3])."""
     if len(D) == 0 or not np.any(D):

@@ -27,7 +27,7 @@ from services.calibration.check import check_rig
 from services.camera.config import CAMERA_DRIVERS, CameraConfig, stand_in_rig
 from services.core.clock import Rate, now_ns
 from services.core.config import ConfigError, load_config
-from services.core.rig import Rig, camera_gap, load_rig
+from services.core.rig import Rig, load_rig, served_camera_gap
 from services.robot.config import ROBOT_DRIVERS, RobotConfig
 from services.teleop.config import TeleopConfig
 
@@ -254,17 +254,7 @@ def policy_findings(teleop: TeleopConfig, cameras: CameraConfig, robot: RobotCon
             findings.append(Finding(part, True, f"{c.width}x{c.height}"))
             continue
         here = rig.cameras[v]
-        K = here.K(c.width, c.height)
-        gap = camera_gap(
-            np.reshape(c.R_ext, (3, 3)),
-            c.position,
-            np.reshape(c.K, (3, 3)),
-            (c.width, c.height),
-            here.R_ext,
-            here.position,
-            K,
-            (c.width, c.height),
-        )
+        gap = served_camera_gap(c, here, here.K(c.width, c.height), (c.width, c.height))
         if gap:
             findings.append(
                 Finding(

@@ -26,7 +26,7 @@ import numpy as np
 
 from services.core import topics
 from services.core.config import ConfigError
-from services.core.rig import Camera, camera_gap
+from services.core.rig import Camera, served_camera_gap
 from services.core.robot_types import EefDelta
 from services.core.throttle import Throttle
 from services.pb.sensors_pb2 import RobotState, TaskState
@@ -116,17 +116,7 @@ class PolicyTeleop(TeleopDriver):
             except (ValueError, ZeroDivisionError) as exc:
                 log.warning("camera %s: unreadable calibration (%s): not checked against the policy server's", cam, exc)
                 continue
-            c = self._served[cam]
-            gap = camera_gap(
-                np.reshape(c.R_ext, (3, 3)),
-                c.position,
-                np.reshape(c.K, (3, 3)),
-                (c.width, c.height),
-                camera.R_ext,
-                camera.position,
-                K,
-                (int(calib.width), int(calib.height)),
-            )
+            gap = served_camera_gap(self._served[cam], camera, K, (int(calib.width), int(calib.height)))
             before = self._moved.pop(cam, None)
             if gap:
                 self._moved[cam] = gap
