@@ -31,6 +31,13 @@ class EefDelta:
         return cls(np.zeros(3), np.zeros(3), float(gripper))
 
 
+def kept_gripper(closure: float) -> float:
+    """The gripper target that keeps a gripper as it reads ``closure``: closed (1) above half closed
+    (on an object, short of fully closed), open (0) otherwise. Sending the reading itself would be a
+    target where a position-controlled gripper holds no grip; sending 0 would drop what it holds."""
+    return 1.0 if closure > 0.5 else 0.0
+
+
 @dataclass(frozen=True)
 class RobotSnapshot:
     """The arm at one instant (what ``RobotState`` carries)."""

@@ -25,6 +25,7 @@ import grpc
 import numpy as np
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 
+from services.core.robot_types import kept_gripper
 from services.core.tensors import encode_jpeg, to_tensor
 from services.pb import policy_pb2, policy_pb2_grpc
 from services.policy import POLICY_PROTO_VERSION
@@ -480,7 +481,7 @@ class ChunkRunner:
         """(7-vector action for ``tick``, True) or a hold and False when none is queued."""
         self._observe(frames, state)
         if self._gripper is None:  # (before: open, dropping an object held when the episode began)
-            self._gripper = 1.0 if state.gripper > 0.5 else 0.0
+            self._gripper = kept_gripper(state.gripper)
         self._collect(tick, wait=False)
         left = sum(1 for t in self._queue if t >= tick)
         if self._pending is None and left <= (0 if self.blocking else self._lead_ticks()):

@@ -35,7 +35,7 @@ from pydantic import Field, model_validator
 
 from services.core.config import Frozen
 from services.core.geometry import clip_norm
-from services.core.robot_types import EefDelta, RobotSnapshot
+from services.core.robot_types import EefDelta, RobotSnapshot, kept_gripper
 from services.robot.base import RobotDriver
 
 log = logging.getLogger(__name__)
@@ -181,8 +181,7 @@ class Safety:
         """What a hold commands the gripper: the last command's target; before any, where it is
         (before: open, so a robot service started with an object in the gripper dropped it)."""
         if self._gripper is None:
-            closure = (self._snapshot or self.read()).gripper
-            self._gripper = 1.0 if closure > 0.5 else 0.0
+            self._gripper = kept_gripper((self._snapshot or self.read()).gripper)
         return self._gripper
 
     def close(self) -> None:

@@ -32,7 +32,7 @@ import numpy as np
 
 from services.core.bus import Bus
 from services.core.geometry import clip_norm
-from services.core.robot_types import EefDelta
+from services.core.robot_types import EefDelta, kept_gripper
 from services.pb.episode_pb2 import EpisodeReply
 from services.pb.sensors_pb2 import RobotState, TaskState
 from services.recorder.control import describe_reply, episode_control, episode_request
@@ -153,7 +153,7 @@ class DeviceTeleop(TeleopDriver):
         translation, rotation = self.deflection(self.clock())
         with self._lock:
             if self._gripper is None:
-                self._gripper = 1.0 if state.gripper > 0.5 else 0.0
+                self._gripper = kept_gripper(state.gripper)
             if self._toggles % 2:
                 self._gripper = 1.0 - self._gripper
             self._toggles = 0

@@ -27,7 +27,7 @@ import numpy as np
 from services.core import topics
 from services.core.config import ConfigError
 from services.core.rig import Camera, served_camera_gap
-from services.core.robot_types import EefDelta
+from services.core.robot_types import EefDelta, kept_gripper
 from services.core.throttle import Throttle
 from services.pb.sensors_pb2 import RobotState, TaskState
 from services.policy.client import ChunkRunner, PolicyClient, PolicyError, State
@@ -200,12 +200,12 @@ class PolicyTeleop(TeleopDriver):
         if not state.episode_id and not self.cfg.outside_episodes:
             # no episode is being recorded (an operator resetting the scene): hold still, ask nothing
             # (before: the policy drove a real arm from the teleop's start on, between episodes too)
-            # the gripper kept as it is, closed on an object closed, as the devices and the safety
-            # layer's holds keep it (before: the reading itself, a target where a gripper has no grip)
-            return EefDelta(np.zeros(3), np.zeros(3), 1.0 if state.gripper > 0.5 else 0.0)
+            # the gripper kept as it is, as the devices and the safety layer's holds keep it (before:
+            # the reading itself, a target where a gripper has no grip)
+            return EefDelta.hold(kept_gripper(state.gripper))
         if why := self._moved_cameras():  # (before: it drove with the server's calibration)
             self.refused = self.refused or why  # (logged once, as it began: _check_cameras)
-            return EefDelta(np.zeros(3), np.zeros(3), 1.0 if state.gripper > 0.5 else 0.0)
+            return EefDelta.hold(kept_gripper(state.gripper))
         if self.runner is None:
             self.reset("", state.episode_id)
         now = State(np.asarray(state.eef_pos), np.asarray(state.eef_quat_wxyz), state.gripper, state.header.stamp_ns)
