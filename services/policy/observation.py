@@ -76,9 +76,7 @@ class PolicySpec:
     gammas: dict[str, float] = field(default_factory=dict)  # default composition weights
 
     @classmethod
-    def from_info(
-        cls, info: dict[str, Any], sha256: str, model_id: str, extra_cameras: dict[str, CameraSpec] | None = None
-    ) -> PolicySpec:
+    def from_info(cls, info: dict[str, Any], sha256: str, model_id: str) -> PolicySpec:
         model = info["model"]
         cameras: dict[str, CameraSpec] = {}
         for name, c in (info.get("calibration") or {}).items():
@@ -93,9 +91,6 @@ class PolicySpec:
                 np.asarray(c["position"], dtype=np.float64),
             )
         views = tuple(info.get("views") or cameras)
-        # a rig's cameras take the place of the checkpoint's of the same name: a camera recalibrated
-        # (moved) since training is served where it is now (before: the training calibration won)
-        cameras.update(extra_cameras or {})
         return cls(
             model_id=model_id,
             sha256=sha256,

@@ -29,6 +29,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import copy
+import dataclasses
 import ipaddress
 import logging
 import statistics
@@ -1124,9 +1125,9 @@ def load_spec(cfg) -> tuple[PolicySpec, NoiseConfig, dict[str, Any]]:
         # which for a checkpoint of another task placed every camera elsewhere)
         task = cfg.task or next(iter(info.get("tasks") or []), None)
         extra = rig_cameras(cfg.rig, task, w, h)
-    trained = PolicySpec.from_info(info, sha, model_id(cfg.checkpoint)).cameras
-    for name in sorted(set(extra) & set(trained)):
-        a, b = trained[name], extra[name]
+    spec = PolicySpec.from_info(info, sha, model_id(cfg.checkpoint))
+    for name in sorted(set(extra) & set(spec.cameras)):
+        a, b = spec.cameras[name], extra[name]
         if moved := camera_gap(
             a.R_ext, a.position, a.K, (a.width, a.height), b.R_ext, b.position, b.K, (b.width, b.height)
         ):
@@ -1136,7 +1137,9 @@ def load_spec(cfg) -> tuple[PolicySpec, NoiseConfig, dict[str, Any]]:
                 cfg.rig,
                 moved,
             )
-    spec = PolicySpec.from_info(info, sha, model_id(cfg.checkpoint), extra)
+    # the rig's cameras take the place of the checkpoint's of the same name: a camera recalibrated
+    # (moved) since training is served where it is now (before: the training calibration won)
+    spec = dataclasses.replace(spec, cameras={**spec.cameras, **extra})
     views = list(cfg.views or spec.train_views)
     unknown = [v for v in views if v not in spec.cameras]
     if unknown:
