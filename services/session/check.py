@@ -20,6 +20,7 @@ import time
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -285,9 +286,16 @@ def run_check(
     default_parts = parts is None
     parts = set(PARTS if parts is None else parts)
     findings: list[Finding] = []
+    loaded: dict[str, Any] = {}
+
+    def section(model, name: str):  # each section read once, whichever parts need it
+        if name not in loaded:
+            loaded[name] = load_config(model, config, overrides.get(name, []), section=name)
+        return loaded[name]
+
     sizes: dict[str, tuple[int, int]] | None = None
     if parts & {"cameras", "calibration"}:
-        cam_cfg = load_config(CameraConfig, config, overrides.get("camera", []), section="camera")
+        cam_cfg = section(CameraConfig, "camera")
         rig = None
         try:
             load_rig(cam_cfg.rig)  # both parts need it: say once what is wrong with it
@@ -316,14 +324,9 @@ def run_check(
             except ConfigError as exc:
                 findings.append(Finding("calibration", False, _describe_error(exc)))
     if "robot" in parts:
-        robot_cfg = load_config(RobotConfig, config, overrides.get("robot", []), section="robot")
-        findings += robot_findings(robot_cfg)
+        findings += robot_findings(section(RobotConfig, "robot"))
     if "policy" in parts:
-        teleop_cfg = load_config(TeleopConfig, config, overrides.get("teleop", []), section="teleop")
+        teleop_cfg = section(TeleopConfig, "teleop")
         if teleop_cfg.driver.type == "policy" or not default_parts:
-            findings += policy_findings(
-                teleop_cfg,
-                load_config(CameraConfig, config, overrides.get("camera", []), section="camera"),
-                load_config(RobotConfig, config, overrides.get("robot", []), section="robot"),
-            )
+            findings += policy_findings(teleop_cfg, section(CameraConfig, "camera"), section(RobotConfig, "robot"))
     return findings
