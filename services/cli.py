@@ -58,10 +58,8 @@ def _collect(args: argparse.Namespace) -> int:
             if not rest:
                 raise ConfigError(f"--set {item!r} must name a service: sim.width=224, recorder.queue_size=256")
             extra.setdefault(service, []).append(rest)
-        # SIGTERM (and SIGINT, even where a parent shell ignores it) unwinds like Ctrl-C, so the
-        # episode in progress is closed and kept (flagged) and every service is stopped.
-        for sig in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):
-            signal.signal(sig, _interrupt)
+        # the episode in progress is closed and kept (flagged) and every service is stopped
+        _interrupt_on_signals()
         result = collect(
             args.task,
             args.episodes,
@@ -122,8 +120,7 @@ def _eval(args: argparse.Namespace) -> int:
             video=args.video,
             video_camera=args.video_camera,
         )
-        for sig in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):
-            signal.signal(sig, _interrupt)
+        _interrupt_on_signals()
         result = evaluate(spec, Path(args.out))
     except (EvalError, CollectError, ConfigError, CheckpointError) as exc:
         print(f"error: {exc}", file=sys.stderr)
@@ -242,8 +239,7 @@ def _experiment(args: argparse.Namespace) -> int:
             args.question, args.task, args.scale, Path(args.root), progress=say, only=args.only, seeds=seeds
         )
         writable_dir(args.root, "--root")  # (its cache and the tables go there)
-        for sig in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):
-            signal.signal(sig, _interrupt)
+        _interrupt_on_signals()
         runner.run(table_only=args.table_only)
     except (ConfigError, ExperimentError, OutputError) as exc:
         print(f"error: {exc}", file=sys.stderr)
@@ -259,6 +255,17 @@ def _experiment(args: argparse.Namespace) -> int:
 
 def _interrupt(signum, _frame):
     raise KeyboardInterrupt(signal.Signals(signum).name)
+
+
+def _interrupt_on_signals() -> None:
+    """SIGTERM, SIGHUP and SIGINT (even where a parent shell ignores it) unwind like Ctrl-C; and a
+    Ctrl-C that came while the command started, and that a library swallowed, unwinds now."""
+    from services.core.runtime import signalled_while_starting
+
+    for sig in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):
+        signal.signal(sig, _interrupt)
+    if name := signalled_while_starting():
+        raise KeyboardInterrupt(name)
 
 
 def _episode(args: argparse.Namespace) -> int:
@@ -551,10 +558,13 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = None
     try:  # (from the first import on: a Ctrl-C there was a traceback from pydantic's imports)
-        from services.core.runtime import LOG_FORMAT, die_with_parent
+        from services.core.runtime import LOG_FORMAT, die_with_parent, remember_interrupts, signalled_while_starting
 
+        remember_interrupts()  # (a library that swallows a Ctrl-C while a command starts does not lose it)
         die_with_parent()  # started by a session or an experiment: do not outlive it
         args = build_parser().parse_args(argv)  # (it imports every command's module: a second or so)
+        if signalled_while_starting():
+            raise KeyboardInterrupt
         logging.basicConfig(level=getattr(logging, args.log_level), format=LOG_FORMAT)
         return int(args.func(args) or 0)
     except KeyboardInterrupt:  # before a command's own handling (while torch imports): no traceback

@@ -33,6 +33,31 @@ def configure_logging(level: str = "INFO") -> None:
     logging.getLogger("torch").setLevel(lvl if lvl <= logging.DEBUG else max(lvl, logging.WARNING))
 
 
+_SIGNALLED_WHILE_STARTING: list[str] = []
+
+
+def remember_interrupts() -> None:
+    """Called first in the command line's main. A Ctrl-C while a command starts raises
+    KeyboardInterrupt, as Python's own handler does, and is also remembered: a library that
+    swallows it (mpmath, which torch imports through sympy, wraps its ``import gmpy2`` in a bare
+    ``except``) would otherwise lose it, and the command would start as if no one had asked it to
+    stop. A command asks :func:`signalled_while_starting` once its own signal handling is in place.
+    Where SIGINT is ignored (a background job of a script) or handled already, nothing changes."""
+    if signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
+        return
+
+    def handler(signum, _frame):
+        _SIGNALLED_WHILE_STARTING.append(signal.Signals(signum).name)
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGINT, handler)
+
+
+def signalled_while_starting() -> str | None:
+    """The signal that came while the command started (see :func:`remember_interrupts`), or None."""
+    return _SIGNALLED_WHILE_STARTING[0] if _SIGNALLED_WHILE_STARTING else None
+
+
 def stop_on_signals(stop: threading.Event) -> None:
     """SIGTERM, SIGINT and SIGHUP (a closed terminal) set ``stop`` so the service closes its files cleanly."""
 

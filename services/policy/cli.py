@@ -59,9 +59,11 @@ def _empty_token(args: argparse.Namespace) -> str | None:
 
 
 def _run(coro_factory) -> int:
-    from services.core.runtime import die_with_parent
+    from services.core.runtime import die_with_parent, signalled_while_starting
 
     die_with_parent()  # a server's workers (and a session's server) go when their parent goes
+    if signalled_while_starting():  # (a Ctrl-C that torch's imports swallowed: see remember_interrupts)
+        raise KeyboardInterrupt
     stop = asyncio.Event()
 
     async def main() -> int:

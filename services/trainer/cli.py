@@ -30,6 +30,8 @@ def _stop_on_signals(stop: threading.Event, announce: bool):
     """The first SIGINT, SIGTERM or SIGHUP sets ``stop``: training ends after the step in progress and
     saves a checkpoint there. A second one interrupts at once (back to the latest checkpoint). Only
     in the main thread, where Python handles signals; the previous handlers come back after."""
+    from services.core.runtime import signalled_while_starting
+
     if threading.current_thread() is not threading.main_thread():
         yield
         return
@@ -44,6 +46,8 @@ def _stop_on_signals(stop: threading.Event, announce: bool):
 
     signals = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
     before = {sig: signal.signal(sig, on_signal) for sig in signals}
+    if signalled_while_starting():  # (a Ctrl-C that torch's imports swallowed: see remember_interrupts)
+        stop.set()
     try:
         yield
     finally:

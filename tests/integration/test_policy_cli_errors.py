@@ -305,7 +305,12 @@ def test_ctrl_c_while_the_command_line_starts_is_one_line_not_a_traceback(tiny_c
     assert proc.stdout.readline() == "started\n"
     time.sleep(after_s)  # the moment of the Ctrl-C is what is tested (the parser takes about a second)
     proc.send_signal(signal.SIGINT)
-    out, err = proc.communicate(timeout=30)
+    try:
+        out, err = proc.communicate(timeout=30)
+    except subprocess.TimeoutExpired:  # (what it printed says where it was: test_cli_interrupts.py)
+        proc.kill()
+        out, err = proc.communicate()
+        pytest.fail(f"still running 30 s after the Ctrl-C:\n{out[-800:]}\n{err[-800:]}")
     assert "listening" not in out  # (it was still starting)
     assert proc.returncode == 130, err
     assert err.strip() in ("viewscale: interrupted", "viewscale serve: interrupted"), err
