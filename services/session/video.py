@@ -1,7 +1,12 @@
-"""An MP4 of one recorded episode from one camera, with the tick and the outcome drawn in."""
+"""An MP4 of one recorded episode from one camera, with the tick and the outcome drawn in.
+
+VP9 in MP4 (``vp09``), which browsers, notebooks and code-review pages play; OpenCV's MPEG-4 Part 2
+(``mp4v``), which they do not, only where this OpenCV build has no VP9 encoder (said once, in the log).
+"""
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import cv2
@@ -11,6 +16,22 @@ from services.core.tensors import decode_jpeg
 from services.recorder.reader import read_episode
 
 SCALE = 4  # 84 px frames become 336 px: big enough to see the gripper
+CODECS = ("vp09", "mp4v")  # the first this OpenCV can write
+log = logging.getLogger("video")
+_said_fallback: list[str] = []
+
+
+def open_writer(out: Path, fps: float, size: tuple[int, int]) -> tuple[cv2.VideoWriter, str]:
+    """A writer of ``out`` with the first of ``CODECS`` this OpenCV build encodes, and its code."""
+    for code in CODECS:
+        writer = cv2.VideoWriter(str(out), cv2.VideoWriter_fourcc(*code), fps, size)
+        if writer.isOpened():
+            if code != CODECS[0] and not _said_fallback:
+                _said_fallback.append(code)
+                log.warning("this OpenCV has no VP9 encoder: videos are %s, which browsers do not play", code)
+            return writer, code
+        writer.release()
+    raise RuntimeError(f"OpenCV cannot write {out} (no VP9 or MPEG-4 encoder in this build)")
 
 
 def annotate(rgb: np.ndarray, text: str, colour: tuple[int, int, int]) -> np.ndarray:
@@ -35,9 +56,7 @@ def write_video(episode: Path, camera: str, out: Path, success: bool | None = No
     out.parent.mkdir(parents=True, exist_ok=True)
     first = decode_jpeg(frames[0].msg.data)
     size = (first.shape[1] * SCALE, first.shape[0] * SCALE)
-    writer = cv2.VideoWriter(str(out), cv2.VideoWriter_fourcc(*"mp4v"), fps, size)
-    if not writer.isOpened():
-        raise RuntimeError(f"OpenCV cannot write {out} (no MPEG-4 encoder in this build)")
+    writer, _ = open_writer(out, fps, size)
     try:
         img = first
         for i, rec in enumerate(frames):

@@ -9,9 +9,11 @@ import subprocess
 import sys
 from pathlib import Path
 
+import cv2
 import numpy as np
 from cli_process import viewscale
 
+from services.camera.opencv import fourcc_text
 from services.core.tensors import decode_jpeg
 from services.dataset.build import BuildParams, build_dataset
 from services.dataset.store import DatasetStore
@@ -62,6 +64,8 @@ def test_eval_drives_the_sim_through_the_policy_server_and_records_every_rollout
     assert (out / "report.md").read_text().startswith("# Evaluation: lift")
     video = out / "videos" / f"{Path(rows[0]['path']).stem}.mp4"
     assert video.is_file() and video.stat().st_size > 2000
+    cap = cv2.VideoCapture(str(video))  # VP9, which browsers play (mp4v, before, they did not)
+    assert fourcc_text(cap.get(cv2.CAP_PROP_FOURCC)) == "VP90" and cap.read()[0]
 
 
 def test_eval_against_a_running_server_single_view_then_composed(tiny_checkpoint, tmp_path):
