@@ -60,6 +60,10 @@ class URRobotConfig(DriverConfig):
     tcp_offset: Pose6 | None = None  # TCP in the flange frame [x, y, z, rx, ry, rz] (m, rad); None: the pendant's
     gripper: GRIPPERS.config_type() = NullGripperConfig()  # {type: none}, {type: robotiq, ...} or package.module:Class
     reconnect_interval_s: float = Field(2.0, gt=0)  # after a fault: how often to try to reconnect and resume
+    # how far the servo target may run ahead of the measured TCP: an arm held back (pushing on the
+    # table or an object) is not sent further, so it does not leap when it comes free
+    max_lead_m: float = Field(0.1, gt=0)  # m (tracking lags about speed x lookahead_time: 2.5 cm at 0.25 m/s)
+    max_lead_rad: float = Field(0.6, gt=0)  # rad
 
 
 ROBOT_DRIVERS: Registry[RobotDriver] = Registry("robot", RobotDriver)

@@ -18,9 +18,12 @@ Each tick's ``EefDelta`` moves it (``p += dp``, ``R = Rot(drot) @ R``, ``apply_d
 ``servoL(target, speed, acceleration, 1 / control_hz, lookahead_time, gain)`` sends it: the
 controller servos there over one control period, smoothed by the lookahead time and gain. The
 safety layer bounds the target, not just the measured pose, by the workspace box
-(``target_position``). A hold sends nothing: the controller's servo thread stays on the last
-target. ``stop`` (commands stopped coming, or a fault began) is ``servoStop``, and the next motion
-starts from the measured pose again, so the arm never jumps back to an old target.
+(``target_position``), and the driver keeps it within ``max_lead_m`` and ``max_lead_rad`` of the
+measured pose: an arm held back (pushing on the table or an object) falls behind its target, and an
+unbounded target would have it leap the whole gap when it came free (said once per such stretch in
+the log). A hold sends nothing: the controller's servo thread stays on the last target. ``stop``
+(commands stopped coming, or a fault began) is ``servoStop``, and the next motion starts from the
+measured pose again, so the arm never jumps back to an old target.
 
 Faults. Every ``read`` checks the connection of both interfaces, protective and emergency stops,
 the safety mode (normal or reduced) and the robot mode (running); a ``servoL`` the controller
@@ -129,6 +132,7 @@ class UR(RobotDriver):
         self.gripper = gripper
         self._target: tuple[np.ndarray, np.ndarray] | None = None  # (p, R) being servoed to
         self._gripper_sent: float | None = None  # the last closure sent to the gripper
+        self._lead_capped = False  # the target is being held within the lead of the measured pose
         self._last: RobotSnapshot | None = None  # the last good reading (returned while disconnected)
         self._measured: tuple[np.ndarray, np.ndarray] | None = None  # (p, R) of that reading
         self._fault = ""  # latched: why the arm cannot move ('' when it can)
@@ -231,7 +235,7 @@ class UR(RobotDriver):
             if self._measured is None:
                 return
             self._target = self._measured
-        self._target = apply_delta(*self._target, action)
+        self._target = self._within_lead(*apply_delta(*self._target, action))
         pose = pos_matrix_to_ur_pose(*self._target)
         try:
             ok = self._c.servoL(
@@ -244,6 +248,28 @@ class UR(RobotDriver):
             self._check()  # a protective stop says why; otherwise the script is gone
             if not self._fault:
                 self._set_fault("the UR controller refused servoL (its control script is not running)")
+
+    def _within_lead(self, p: np.ndarray, R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(p, R) pulled back to within ``max_lead_m`` and ``max_lead_rad`` of the measured pose."""
+        mp, mR = self._measured
+        gap, turn = p - mp, matrix_to_rotvec(R @ mR.T)  # (the rotation from the measured to the target)
+        dist, angle = float(np.linalg.norm(gap)), float(np.linalg.norm(turn))
+        lead_m, lead_rad = self.cfg.max_lead_m, self.cfg.max_lead_rad
+        if dist <= lead_m and angle <= lead_rad:
+            self._lead_capped = False
+            return p, R
+        if not self._lead_capped:
+            self._lead_capped = True
+            log.warning(
+                "the arm is %.0f mm and %.1f degrees behind its servo target (held back?): the target is "
+                "kept within max_lead_m %g m and max_lead_rad %g rad of it",
+                dist * 1e3, np.degrees(angle), lead_m, lead_rad,
+            )  # fmt: skip
+        if dist > lead_m:
+            p = mp + gap * (lead_m / dist)
+        if angle > lead_rad:
+            R = orthonormalize(rotvec_to_matrix(turn * (lead_rad / angle)) @ mR)
+        return p, R
 
     def stop(self) -> None:
         self._target = None  # the next motion starts from wherever the arm comes to rest

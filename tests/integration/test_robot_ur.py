@@ -61,6 +61,7 @@ class FakeArm:
         self.link = True  # the network between us and the controller
         self.protective = False
         self.program_running = True  # ur-rtde's control script
+        self.held = False  # held back (pushing on the table): servoL moves the target, not the arm
         self.calls: list[tuple[str, tuple]] = []  # (interface.method, args), in order
         self.violations: list[str] = []  # calls the driver must never make
         self.interfaces: list[_Interface] = []
@@ -179,7 +180,8 @@ class FakeControl(_Interface):
         with self.arm.lock:
             if self.arm.protective or not self.arm.program_running:
                 return False
-            self.arm.pose = [float(v) for v in pose]  # the arm reaches the target within `time`
+            if not self.arm.held:
+                self.arm.pose = [float(v) for v in pose]  # the arm reaches the target within `time`
         return True
 
     def servoStop(self, a=10.0) -> bool:
@@ -483,6 +485,29 @@ def test_the_safety_layer_bounds_the_driver_target_not_just_the_measured_pose(fa
         assert ran.limits == ("workspace",) and ran.action.dp[0] == pytest.approx(0.0)
 
 
+def test_an_arm_held_back_is_not_sent_ever_further_ahead_so_it_does_not_leap_when_it_comes_free(fake_ur, caplog):
+    arm = fake_ur()
+    driver = ROBOT_DRIVERS.build(URRobotConfig(host="ur-fake"), control_hz=20.0)
+    start = matrix_to_rotvec(rotvec_to_matrix(TOOL_DOWN))
+    with Safety(driver, SafetyConfig(), 20.0) as safe:
+        safe.read()
+        arm.held = True  # pushing on something: the commands go on, the arm stays at x = 0.45
+        with caplog.at_level(logging.WARNING, logger="services.robot.ur"):
+            for _ in range(10):
+                safe.read()
+                safe.apply(_delta([0.025, 0.0, 0.0], drot=[0.0, 0.0, 0.12]))
+        target = arm.servo_targets()[-1]
+        assert target[0] == pytest.approx(0.45 + 0.1)  # max_lead_m, not the 0.25 m commanded
+        turned = rotvec_to_matrix(target[3:]) @ rotvec_to_matrix(start).T
+        assert np.linalg.norm(matrix_to_rotvec(turned)) == pytest.approx(0.6)  # max_lead_rad, not 1.2
+        assert len([r for r in caplog.records if "behind its servo target" in r.getMessage()]) == 1
+        arm.held = False  # free: it goes to the bounded target (the fake at once), then on as commanded
+        for x in (0.55, 0.575):
+            safe.read()
+            safe.apply(_delta([0.025, 0.0, 0.0]))
+            assert arm.pose[0] == pytest.approx(x)
+
+
 def test_after_a_dropped_link_comes_back_the_driver_reconnects_and_servos_from_the_measured_pose(fake_ur):
     arm = fake_ur()
     driver = ROBOT_DRIVERS.build(URRobotConfig(host="ur-fake", reconnect_interval_s=0.05), control_hz=20.0)
@@ -641,7 +666,8 @@ def _delta(dp, drot=(0.0, 0.0, 0.0), gripper: float = 0.0):
 def test_rotation_targets_round_trip_through_the_fake(fake_ur):
     # The pose the driver reports after a rotation is the rotation vector the controller was sent.
     arm = fake_ur()
-    driver = ROBOT_DRIVERS.build(URRobotConfig(host="ur-fake"), control_hz=20.0)
+    # (a quarter turn in one step, past the default lead of 0.6 rad: the lead is not what is tested)
+    driver = ROBOT_DRIVERS.build(URRobotConfig(host="ur-fake", max_lead_rad=2.0), control_hz=20.0)
     driver.read()
     driver.apply(_delta(np.zeros(3), drot=(0.0, 0.0, np.pi / 2)))
     sent = arm.servo_targets()[-1]
