@@ -19,6 +19,7 @@ from __future__ import annotations
 import json
 import logging
 import threading
+import time
 import zlib
 from pathlib import Path
 
@@ -79,6 +80,8 @@ class PolicyTeleop(TeleopDriver):
         self._moved: dict[str, str] = {}  # camera -> how its published calibration differs from the server's
         self._checked: dict[str, int] = {}  # camera -> the version of its messages last checked
         self._unheard_said = False  # a camera whose calibration never came was logged
+        self._waited_said = False  # the wait for the cameras' calibration was logged
+        self._wait_until = time.monotonic() + cfg.calibration_wait_s
         self._errors = Throttle(log)  # failed GetActions
         self._lock = threading.Lock()
         log.info(
@@ -131,19 +134,33 @@ class PolicyTeleop(TeleopDriver):
             elif before:
                 log.info("camera %s now matches the policy server's calibration", cam)
 
+    def _unheard_cameras(self) -> bool:
+        """Whether a camera-space policy still waits for a view's calibration and pose (for at most
+        ``calibration_wait_s`` from the start; before, it drove unchecked until they came). Past
+        the wait it drives, and the cameras never heard are logged once."""
+        if not self._geometry or self._unheard_said:
+            return False
+        unheard = sorted(c for c in self.cameras if c not in self._checked)
+        if not unheard:
+            return False
+        if time.monotonic() < self._wait_until:
+            if not self._waited_said:
+                self._waited_said = True
+                log.info("holding still until camera %s publishes its calibration and pose", ", ".join(unheard))
+            return True
+        self._unheard_said = True  # (a camera service always publishes them: a bus that passes the images only?)
+        log.warning(
+            "no calibration and pose heard from camera %s in %g s: it is not checked against the policy "
+            "server's (does this user hear camera/*/calibration and camera/*/pose?)",
+            ", ".join(unheard),
+            self.cfg.calibration_wait_s,
+        )
+        return False
+
     def _moved_cameras(self) -> str | None:
         """Why the policy must not drive: cameras whose published calibration differs from the
         server's, for a policy whose actions or states are in the camera frame."""
         self._check_cameras()
-        if self._geometry and not self._unheard_said:
-            unheard = sorted(c for c in self.cameras if c not in self._checked)
-            if unheard:  # (a camera service always publishes them: a bus that passes the images only?)
-                self._unheard_said = True
-                log.warning(
-                    "no calibration and pose heard from camera %s: it is not checked against the policy "
-                    "server's (does this user hear camera/*/calibration and camera/*/pose?)",
-                    ", ".join(unheard),
-                )
         if not self._moved or not self._geometry:
             return None
         return (
@@ -205,6 +222,8 @@ class PolicyTeleop(TeleopDriver):
             return EefDelta.hold(kept_gripper(state.gripper))
         if why := self._moved_cameras():  # (before: it drove with the server's calibration)
             self.refused = self.refused or why  # (logged once, as it began: _check_cameras)
+            return EefDelta.hold(kept_gripper(state.gripper))
+        if self._unheard_cameras():
             return EefDelta.hold(kept_gripper(state.gripper))
         if self.runner is None:
             self.reset("", state.episode_id)

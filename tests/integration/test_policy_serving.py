@@ -975,7 +975,9 @@ def test_the_policy_teleop_drives_only_within_an_episode(checkpoint, observation
             return msg
 
         for outside in (False, True):
-            driver = PolicyTeleop(PolicyTeleopConfig(server=addr, blocking=True, outside_episodes=outside))
+            # (no calibration will come: no wait for it here; its wait is tested with a bus below)
+            cfg = PolicyTeleopConfig(server=addr, blocking=True, outside_episodes=outside, calibration_wait_s=0)
+            driver = PolicyTeleop(cfg)
             try:
                 between = driver.act(state(""), None, seen)
                 asked = driver.runner.stats.requests if driver.runner is not None else 0
@@ -991,8 +993,8 @@ def test_the_policy_teleop_drives_only_within_an_episode(checkpoint, observation
                     driver.act(state("ep-1"), None, seen)
                 assert driver.runner.stats.requests > 0
                 # attached to no bus, it heard no calibration: said once, as it began to drive
-                unheard = [r.getMessage() for r in caplog.records if "no calibration and pose heard" in r.getMessage()]
-                assert len(unheard) == 1 and unheard[0].startswith("no calibration and pose heard from camera F:")
+                said = [r.getMessage() for r in caplog.records if "no calibration and pose heard" in r.getMessage()]
+                assert len(said) == 1 and said[0].startswith("no calibration and pose heard from camera F in 0 s:")
                 caplog.clear()
             finally:
                 driver.close()
@@ -1041,6 +1043,10 @@ def test_the_policy_teleop_holds_still_while_a_camera_is_calibrated_elsewhere_th
 
         try:
             driver.reset("lift", "ep-1")
+            # no calibration heard yet: it holds still for it (up to calibration_wait_s, 3 s), asking
+            # nothing (before: it drove, unchecked)
+            held = driver.act(msg, None, seen)
+            assert not held.dp.any() and not held.drot.any() and driver.runner.stats.requests == 0
             publish("three15")  # where the checkpoint was trained: it drives
             time.sleep(0.3)
             assert asks() > 0 and driver.refused is None
@@ -1086,7 +1092,8 @@ def test_a_getaction_that_fails_every_tick_is_logged_once_a_while_not_every_tick
     proc, addr = start_server(checkpoint, "--views", "F", "--in-process")
     try:
         jpeg = cv2.imencode(".jpg", np.zeros((16, 16, 3), np.uint8))[1].tobytes()  # the policy's are 32x32
-        driver = PolicyTeleop(PolicyTeleopConfig(server=addr, blocking=True))
+        # (attached to no bus, it hears no calibration: no wait for it here)
+        driver = PolicyTeleop(PolicyTeleopConfig(server=addr, blocking=True, calibration_wait_s=0))
         try:
             driver.reset("lift", "ep-1")
             with caplog.at_level("WARNING", logger="services.teleop.policy"):
