@@ -134,7 +134,7 @@ class PolicyTeleop(TeleopDriver):
             elif before:
                 log.info("camera %s now matches the policy server's calibration", cam)
 
-    def _unheard_cameras(self) -> bool:
+    def _waiting_for_calibration(self) -> bool:
         """Whether a camera-space policy still waits for a view's calibration and pose (for at most
         ``calibration_wait_s`` from the start; before, it drove unchecked until they came). Past
         the wait it drives, and the cameras never heard are logged once."""
@@ -223,7 +223,7 @@ class PolicyTeleop(TeleopDriver):
         if why := self._moved_cameras():  # (before: it drove with the server's calibration)
             self.refused = self.refused or why  # (logged once, as it began: _check_cameras)
             return EefDelta.hold(kept_gripper(state.gripper))
-        if self._unheard_cameras():
+        if self._waiting_for_calibration():
             return EefDelta.hold(kept_gripper(state.gripper))
         if self.runner is None:
             self.reset("", state.episode_id)
