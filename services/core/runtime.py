@@ -42,15 +42,18 @@ def remember_interrupts() -> None:
     swallows it (mpmath, which torch imports through sympy, wraps its ``import gmpy2`` in a bare
     ``except``) would otherwise lose it, and the command would start as if no one had asked it to
     stop. A command asks :func:`signalled_while_starting` once its own signal handling is in place.
-    Where SIGINT is ignored (a background job of a script) or handled already, nothing changes."""
-    if signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
-        return
+    Where SIGINT is ignored (a background job of a script) or handled already, nothing changes.
+    (Called again in one process, by a benchmark's second command, it forgets an earlier one's.)"""
+    _SIGNALLED_WHILE_STARTING.clear()
+    if threading.current_thread() is not threading.main_thread():
+        return  # (signals are the main thread's)
+    if signal.getsignal(signal.SIGINT) in (signal.default_int_handler, _remember):
+        signal.signal(signal.SIGINT, _remember)
 
-    def handler(signum, _frame):
-        _SIGNALLED_WHILE_STARTING.append(signal.Signals(signum).name)
-        raise KeyboardInterrupt
 
-    signal.signal(signal.SIGINT, handler)
+def _remember(signum, _frame):
+    _SIGNALLED_WHILE_STARTING.append(signal.Signals(signum).name)
+    raise KeyboardInterrupt
 
 
 def signalled_while_starting() -> str | None:
