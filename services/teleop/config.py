@@ -37,9 +37,9 @@ class PolicyTeleopConfig(DriverConfig):
     # drive the arm between the recorder's episodes too; by default it holds still there (states
     # that name no episode: a hardware session between `viewscale episode stop` and the next start)
     outside_episodes: bool = False
-    # a policy whose actions or states are in the camera frame holds still, from the teleop's start,
-    # at most this long until each view's calibration and pose are heard (camera services publish
-    # them once a second) and checked against the server's; none heard by then: it drives, said once
+    # a policy whose actions or states are in the camera frame holds still, from the first tick it
+    # would drive, at most this long until each view's calibration and pose are heard (camera services
+    # publish them once a second) and checked against the server's; none heard by then: it drives, said once
     calibration_wait_s: float = Field(3.0, ge=0)
 
 

@@ -81,7 +81,7 @@ class PolicyTeleop(TeleopDriver):
         self._checked: dict[str, int] = {}  # camera -> the version of its messages last checked
         self._unheard_said = False  # a camera whose calibration never came was logged
         self._waited_said = False  # the wait for the cameras' calibration was logged
-        self._wait_until = time.monotonic() + cfg.calibration_wait_s
+        self._wait_until: float | None = None  # until when it waits for them (set at its first drive)
         self._errors = Throttle(log)  # failed GetActions
         self._lock = threading.Lock()
         log.info(
@@ -136,13 +136,16 @@ class PolicyTeleop(TeleopDriver):
 
     def _waiting_for_calibration(self) -> bool:
         """Whether a camera-space policy still waits for a view's calibration and pose (for at most
-        ``calibration_wait_s`` from the start; before, it drove unchecked until they came). Past
-        the wait it drives, and the cameras never heard are logged once."""
+        ``calibration_wait_s`` from its first tick that would drive, so that cameras started after
+        the teleop are waited for too; before, it drove unchecked until they came). Past the wait
+        it drives, and the cameras never heard are logged once."""
         if not self._geometry or self._unheard_said:
             return False
         unheard = sorted(c for c in self.cameras if c not in self._checked)
         if not unheard:
             return False
+        if self._wait_until is None:
+            self._wait_until = time.monotonic() + self.cfg.calibration_wait_s
         if time.monotonic() < self._wait_until:
             if not self._waited_said:
                 self._waited_said = True

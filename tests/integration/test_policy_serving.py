@@ -1026,7 +1026,7 @@ def test_the_policy_teleop_holds_still_while_a_camera_is_calibrated_elsewhere_th
         seen = {"F": CameraFrame(*frames["F"][-1])}
         msg = RobotState(tick=1, eef_pos=list(s.eef_pos), eef_quat_wxyz=list(s.eef_quat_wxyz), gripper=0.0)
         msg.header.stamp_ns, msg.episode_id = s.stamp_ns, "ep-1"
-        driver = PolicyTeleop(PolicyTeleopConfig(server=addr, blocking=True))
+        driver = PolicyTeleop(PolicyTeleopConfig(server=addr, blocking=True, calibration_wait_s=1.0))
         driver.attach(make_bus())
         camera_bus = make_bus()
         calibration = camera_bus.publisher(topics.camera_calibration("F"))
@@ -1043,8 +1043,9 @@ def test_the_policy_teleop_holds_still_while_a_camera_is_calibrated_elsewhere_th
 
         try:
             driver.reset("lift", "ep-1")
-            # no calibration heard yet: it holds still for it (up to calibration_wait_s, 3 s), asking
-            # nothing (before: it drove, unchecked)
+            time.sleep(1.2)  # the episode begins later than calibration_wait_s after the teleop's start
+            # no calibration heard yet: it holds still for it (up to calibration_wait_s from this first
+            # tick), asking nothing (before: it drove, unchecked)
             held = driver.act(msg, None, seen)
             assert not held.dp.any() and not held.drot.any() and driver.runner.stats.requests == 0
             publish("three15")  # where the checkpoint was trained: it drives
