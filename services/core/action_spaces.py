@@ -69,6 +69,12 @@ def resolve_state_frame(state_frame: str, space: str) -> StateFrame:
     return state_frame  # type: ignore[return-value]
 
 
+def needs_calibration(space: str, state_frame: str) -> bool:
+    """Whether actions or states are in a camera's frame, so that each camera's extrinsics turn
+    them (a dataset needs the calibration; a served policy must be given where its cameras are)."""
+    return space == "camera" or state_frame == "camera"
+
+
 def space_rotation(space: str, *, eef_rot: np.ndarray | None = None, R_ext: np.ndarray | None = None) -> np.ndarray:
     """The rotation M with a^v = (M dp, M dr, g): (3, 3), or (N, 3, 3) for per-step EEF rotations."""
     space = check_space(space)

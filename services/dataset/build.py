@@ -26,7 +26,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from services.core.action_spaces import ACTION_DIM, STATE_NAMES, check_space, resolve_state_frame
+from services.core.action_spaces import ACTION_DIM, STATE_NAMES, check_space, needs_calibration, resolve_state_frame
 from services.core.normalizer import Normalizer, NormalizerStats
 from services.core.rig import CALIBRATION_MAX_AGE_DAYS
 from services.core.runtime import LOCK_FILE
@@ -105,7 +105,7 @@ class BuildParams:
 
     @property
     def needs_calibration(self) -> bool:
-        return self.space == "camera" or self.state_frame == "camera"
+        return needs_calibration(self.space, self.state_frame)
 
     def calibration_problems(self, info: dict[str, Any]) -> list[str]:
         """Why a built episode's calibration is missing or stale (services/dataset/calibration.py)."""

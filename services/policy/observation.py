@@ -18,7 +18,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from services.core.action_spaces import check_space, state_vector
+from services.core.action_spaces import check_space, needs_calibration, state_vector
 from services.core.geometry import quat_wxyz_to_matrix
 from services.core.normalizer import Normalizer
 from services.core.tensors import FrameSizeError, decode_resized, from_tensor
@@ -116,7 +116,7 @@ class PolicySpec:
         return [*self.train_views, *sorted(c for c in self.cameras if c not in self.train_views)]
 
     def needs_calibration(self) -> bool:
-        return self.action_space == "camera" or self.state_frame == "camera"
+        return needs_calibration(self.action_space, self.state_frame)
 
 
 @dataclass

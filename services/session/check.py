@@ -26,6 +26,7 @@ import numpy as np
 
 from services.calibration.check import check_rig
 from services.camera.config import CAMERA_DRIVERS, CameraConfig, stand_in_rig
+from services.core.action_spaces import needs_calibration
 from services.core.clock import Rate, now_ns
 from services.core.config import ConfigError, load_config
 from services.core.rig import Rig, load_rig, served_camera_gap
@@ -230,7 +231,7 @@ def policy_findings(teleop: TeleopConfig, cameras: CameraConfig, robot: RobotCon
         rig = None
         findings.append(Finding("policy", False, f"camera.rig {cameras.rig!r}: {_describe_error(exc)}"))
     names = names or (rig.names if rig is not None else [])
-    camera_space = info.action_space == "camera" or info.state_frame == "camera"
+    camera_space = needs_calibration(info.action_space, info.state_frame)
     for v in views:
         part = f"policy view {v}"
         if v not in served:

@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from services.core import topics
+from services.core.action_spaces import needs_calibration
 from services.core.config import ConfigError
 from services.core.rig import Camera, served_camera_gap
 from services.core.robot_types import EefDelta, kept_gripper
@@ -75,7 +76,7 @@ class PolicyTeleop(TeleopDriver):
         self.episode_stats: dict[str, dict] = {}
         # the cameras as the policy server computes with them, and as they publish themselves
         self._served = {c.name: c for c in info.cameras}
-        self._geometry = info.action_space == "camera" or info.state_frame == "camera"
+        self._geometry = needs_calibration(info.action_space, info.state_frame)
         self._live: dict[str, list] = {c: [None, None, 0] for c in self.cameras}  # [calibration, pose, version]
         self._moved: dict[str, str] = {}  # camera -> how its published calibration differs from the server's
         self._checked: dict[str, int] = {}  # camera -> the version of its messages last checked
