@@ -217,17 +217,23 @@ class PolicyTeleop(TeleopDriver):
         # (before: a line per tick, 20 a second while a server refused every request)
         self._errors(logging.WARNING, f"GetAction failed in {self.episode_id}: {exc} (holding still)")
 
-    def act(self, state: RobotState, task: TaskState | None, frames: dict[str, CameraFrame]) -> EefDelta:
+    def _holds_still(self, state: RobotState) -> bool:
+        """Whether this tick is a hold, asking the server nothing: no episode is being recorded (an
+        operator resetting the scene; before: the policy drove a real arm from the teleop's start
+        on, between episodes too), a camera-space policy's camera is placed elsewhere than the
+        server has it (before: it drove with the server's calibration), or it still waits for the
+        cameras' calibration."""
         if not state.episode_id and not self.cfg.outside_episodes:
-            # no episode is being recorded (an operator resetting the scene): hold still, ask nothing
-            # (before: the policy drove a real arm from the teleop's start on, between episodes too)
+            return True
+        if why := self._moved_cameras():
+            self.refused = self.refused or why  # (logged once, as it began: _check_cameras)
+            return True
+        return self._waiting_for_calibration()
+
+    def act(self, state: RobotState, task: TaskState | None, frames: dict[str, CameraFrame]) -> EefDelta:
+        if self._holds_still(state):
             # the gripper kept as it is, as the devices and the safety layer's holds keep it (before:
             # the reading itself, a target where a gripper has no grip)
-            return EefDelta.hold(kept_gripper(state.gripper))
-        if why := self._moved_cameras():  # (before: it drove with the server's calibration)
-            self.refused = self.refused or why  # (logged once, as it began: _check_cameras)
-            return EefDelta.hold(kept_gripper(state.gripper))
-        if self._waiting_for_calibration():
             return EefDelta.hold(kept_gripper(state.gripper))
         if self.runner is None:
             self.reset("", state.episode_id)
