@@ -127,7 +127,12 @@ def test_fan_out_to_workers_gives_the_in_process_actions(checkpoint, observation
     # the grouping worker waits as long as it takes for a group's views (a loaded machine can hold a
     # view's message back longer than the default 50 ms): the pass count below is then exact
     workers = [start_worker(checkpoint) for _ in range(3)]
-    workers += [start_worker(checkpoint, "--set", "group_wait_ms=60000") for _ in range(3)]
+    # the grouping worker logs every module it imports: a worker computes eps and never steps a
+    # scheduler, so it must not pay for diffusers' import (which imports torch._dynamo: 1.5 s here)
+    imports = dict(os.environ, PYTHONPROFILEIMPORTTIME="1")
+    workers += [
+        start_worker(checkpoint, "--set", "group_wait_ms=60000", env=imports if i == 0 else None) for i in range(3)
+    ]
     # two replicas behind one balanced address (as a DNS name of several replicas): gRPC spreads
     # the streams over them, and the server groups the views by the replica each stream reached
     balanced = "ipv4:" + ",".join(a for _, a in workers[4:6])
@@ -163,6 +168,9 @@ def test_fan_out_to_workers_gives_the_in_process_actions(checkpoint, observation
         # every view's encode and steps computed once, on whichever replica its stream reached
         infos = [worker_info(a) for _, a in workers[4:6]]
         assert sum(i.streams for i in infos) == 9 and sum(i.batched_items for i in infos) == 3 * 5 * 3
+        imported = workers[3][0].log_path.read_text()
+        assert re.search(r"^import time: .*\| +torch$", imported, re.M)  # the import log is there
+        assert "diffusers" not in imported and "torch._dynamo" not in imported
     finally:
         for p, _ in servers + workers:
             stop(p)

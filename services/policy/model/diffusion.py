@@ -14,15 +14,24 @@ worker serves and what multi-view composition calls with eps averaged over views
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 import torch
 import torch.nn.functional as F
-from diffusers import DDIMScheduler, DDPMScheduler
 
 from services.policy.model.policy import DiffusionPolicy, NoiseConfig
 
+if TYPE_CHECKING:
+    from diffusers import DDIMScheduler, DDPMScheduler
+
+# diffusers is imported where a scheduler is made, not with this module: importing it imports
+# torch._dynamo (about 1.5 s of a process's start here), which a denoising worker, that computes
+# eps and never steps a scheduler, has no use for.
+
 
 def make_train_scheduler(cfg: NoiseConfig) -> DDPMScheduler:
+    from diffusers import DDPMScheduler
+
     return DDPMScheduler(
         num_train_timesteps=cfg.num_train_timesteps,
         beta_schedule=cfg.beta_schedule,
@@ -32,6 +41,8 @@ def make_train_scheduler(cfg: NoiseConfig) -> DDPMScheduler:
 
 
 def make_inference_scheduler(cfg: NoiseConfig, num_inference_steps: int | None = None) -> DDIMScheduler:
+    from diffusers import DDIMScheduler
+
     sched = DDIMScheduler(
         num_train_timesteps=cfg.num_train_timesteps,
         beta_schedule=cfg.beta_schedule,
