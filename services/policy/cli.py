@@ -86,10 +86,20 @@ def _error(exc: Exception, code: int = 2) -> int:
 
 def _bad_listen(address: str) -> str | None:
     """A listen address no run could bind (a bad argument: exit 2); a port another process holds
-    is found when the server binds (exit 1: the same command works once it is free)."""
+    is ``_unbindable``'s (exit 1: the same command works once it is free)."""
     from services.policy.transport import unlistenable
 
     why = unlistenable(address)
+    return f"cannot listen on {address}: {why}" if why else None
+
+
+def _unbindable(address: str) -> str | None:
+    """Why a bind to the listen address fails now (a port another process holds, an address of no
+    interface here): exit 1, said before the model loads and any worker starts, not seconds later
+    (the server binds again when it starts, for a port taken in between)."""
+    from services.policy.transport import bind_problem
+
+    why = bind_problem(address)
     return f"cannot listen on {address}: {why}" if why else None
 
 
@@ -109,6 +119,8 @@ def _serve(args: argparse.Namespace) -> int:
         return 2
     if why := _bad_listen(cfg.listen):  # (found before the workers start, not after)
         return _error(why)
+    if why := _unbindable(cfg.listen):
+        return _error(why, 1)
     if cfg.in_process and (cfg.workers or cfg.worker):  # (a config file's workers, --in-process to debug)
         unused = [f"{cfg.workers} local workers"] if cfg.workers else []
         unused += [f"worker {a}" for a in cfg.worker]
@@ -166,6 +178,8 @@ def _worker(args: argparse.Namespace) -> int:
         return 2
     if why := _bad_listen(cfg.listen):
         return _error(why)
+    if why := _unbindable(cfg.listen):
+        return _error(why, 1)
     from services.core.runtime import OutputError, reading
     from services.policy.checkpoint import CheckpointError, inference_device, read_info, resolve_checkpoint
     from services.policy.transport import ListenError

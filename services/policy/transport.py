@@ -44,12 +44,12 @@ def listen_on(server, address: str, credentials=None) -> int:
     any free one). ListenError naming the address and the reason when it cannot: found with a plain
     socket first, so that grpc's own error line ("add_port.cc ... Failed to add port") is not
     printed before ours for the usual reasons (a port taken, a host that does not resolve)."""
-    if why := _bind_problem(address):
+    if why := bind_problem(address):
         raise ListenError(f"cannot listen on {address}: {why}")
     try:
         return server.add_secure_port(address, credentials) if credentials else server.add_insecure_port(address)
     except RuntimeError:  # grpc says only "Failed to bind to address ..."
-        why = _bind_problem(address) or "grpc could not bind it (GRPC_VERBOSITY=debug says why)"
+        why = bind_problem(address) or "grpc could not bind it (GRPC_VERBOSITY=debug says why)"
         raise ListenError(f"cannot listen on {address}: {why}") from None
 
 
@@ -73,7 +73,7 @@ def unlistenable(address: str) -> str | None:
     return _resolve(address)[2]
 
 
-def _bind_problem(address: str) -> str | None:
+def bind_problem(address: str) -> str | None:
     """Why a bind to host:port fails, found by trying it with a plain socket; None if it binds."""
     import errno
     import socket

@@ -146,36 +146,38 @@ def test_a_port_another_server_holds_is_refused_not_shared(tiny_checkpoint):
         ),
     ],
 )
-def test_an_address_it_cannot_listen_on_is_one_line(tiny_checkpoint, listen, code, says):
-    for command in (["worker"], ["serve", "--workers", "1"]):
+def test_an_address_it_cannot_listen_on_is_one_line(tiny_checkpoint, listen, code, says, tmp_path):
+    for command in (["worker"], ["serve", "--workers", "1", "--log-dir", str(tmp_path)]):
         proc = viewscale(*command, "--checkpoint", str(tiny_checkpoint), "--listen", listen)
         assert proc.returncode == code, proc.stderr
         assert says in proc.stderr
         assert proc.stderr.strip().splitlines() == [proc.stderr.strip()], proc.stderr  # that line alone
         assert proc.stderr.startswith("error: ") and "ready " not in proc.stdout
+    # said before any worker starts (before: once a worker had started and the model loaded, 6 s)
+    assert not list(tmp_path.iterdir())
 
 
 def test_listen_addresses_are_checked_and_a_failed_bind_says_why():
     from pydantic import ValidationError
 
     from services.policy.config import WorkerConfig
-    from services.policy.transport import _bind_problem, unlistenable
+    from services.policy.transport import bind_problem, unlistenable
 
     for ok in ("127.0.0.1:0", "0.0.0.0:7001", "[::1]:50051", "policy-worker:7001"):
         assert WorkerConfig(checkpoint="c", listen=ok).listen == ok
     for bad in ("7001", 7001, ":7001", "127.0.0.1:65536", "127.0.0.1:x", "host"):
         with pytest.raises(ValidationError, match="is not host:port with a port of 0-65535"):
             WorkerConfig(checkpoint="c", listen=bad)
-    for why in (unlistenable, _bind_problem):
+    for why in (unlistenable, bind_problem):
         assert why("no-such-host.invalid:0") == "'no-such-host.invalid' is not a name or address this machine resolves"
         assert why("127.0.0.1:x").startswith("not host:port")
-    assert _bind_problem("192.0.2.1:0").startswith("192.0.2.1 is not an address of this machine")
+    assert bind_problem("192.0.2.1:0").startswith("192.0.2.1 is not an address of this machine")
     assert unlistenable("192.0.2.1:0") is None  # (it resolves: whether it binds is the bind's to say)
     with socket.socket() as held:
         held.bind(("127.0.0.1", 0))
         held.listen()
-        assert _bind_problem(f"127.0.0.1:{held.getsockname()[1]}") == "another process holds the port"
-    assert _bind_problem("127.0.0.1:0") is None
+        assert bind_problem(f"127.0.0.1:{held.getsockname()[1]}") == "another process holds the port"
+    assert bind_problem("127.0.0.1:0") is None
 
 
 def test_a_tls_file_that_is_not_there_is_a_config_error(tiny_checkpoint):
