@@ -248,7 +248,25 @@ def read_weights(file: str | Path) -> dict[str, torch.Tensor]:
     try:
         return load_file(str(file))
     except (SafetensorError, OSError) as exc:
-        raise CheckpointError(f"{file} cannot be read ({exc}): copy the checkpoint again or use another") from None
+        raise _unreadable(file, exc) from None
+
+
+def check_weights(path: str | Path) -> None:
+    """That a checkpoint's weights file is whole: its header reads and the file holds every tensor
+    the header lists (safetensors checks both on open), without reading a tensor. CheckpointError
+    as ``read_weights``' otherwise. A server whose workers compute checks it before they start."""
+    from safetensors import SafetensorError, safe_open
+
+    file = resolve_checkpoint(path) / MODEL_FILE
+    try:
+        with safe_open(str(file), framework="pt"):
+            pass
+    except (SafetensorError, OSError) as exc:
+        raise _unreadable(file, exc) from None
+
+
+def _unreadable(file: str | Path, exc: Exception) -> CheckpointError:
+    return CheckpointError(f"{file} cannot be read ({exc}): copy the checkpoint again or use another")
 
 
 def read_train_state(path: str | Path) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:

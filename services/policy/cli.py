@@ -125,7 +125,7 @@ def _serve(args: argparse.Namespace) -> int:
         unused = [f"{cfg.workers} local workers"] if cfg.workers else []
         unused += [f"worker {a}" for a in cfg.worker]
         print(f"warning: --in-process computes every view here; not used: {', '.join(unused)}", file=sys.stderr)
-    from services.policy.checkpoint import CheckpointError, inference_device, resolve_checkpoint
+    from services.policy.checkpoint import CheckpointError, check_weights, inference_device, resolve_checkpoint
     from services.policy.server import LocalWorkers, load_spec, serve_policy
     from services.policy.transport import ListenError
 
@@ -142,6 +142,12 @@ def _serve(args: argparse.Namespace) -> int:
             inference_device(cfg.device, cfg.precision if here else "fp32")
     except (CheckpointError, ValueError, OSError) as exc:
         return _error(exc)
+    try:
+        # weights cut short, said now (exit 1, as when they are loaded): before, local workers were
+        # started, failed to load them and were restarted until worker_ready_s ran out (120 s)
+        check_weights(cfg.checkpoint)
+    except CheckpointError as exc:
+        return _error(exc, 1)
     from services.core.runtime import OutputError, reading, writable_dir
 
     try:

@@ -22,7 +22,14 @@ from policy_processes import start_server, start_worker, stop
 from polling import wait_for
 
 from services.core.bus import free_tcp_port
-from services.policy.checkpoint import MODEL_FILE, CheckpointError, inference_device, load_policy, read_weights
+from services.policy.checkpoint import (
+    MODEL_FILE,
+    CheckpointError,
+    check_weights,
+    inference_device,
+    load_policy,
+    read_weights,
+)
 
 ROOT = Path(__file__).resolve().parents[2]
 NO_CUDA = not torch.cuda.is_available()
@@ -43,6 +50,21 @@ def cut_checkpoint(tiny_checkpoint, tmp_path_factory) -> Path:
     return run
 
 
+@pytest.fixture(scope="module")
+def unfitting_checkpoint(tiny_checkpoint, tmp_path_factory) -> Path:
+    """A copy of the tiny run whose weights file is whole but lacks one of the model's tensors: it
+    reads, and no model loads it."""
+    from safetensors.torch import load_file, save_file
+
+    run = tmp_path_factory.mktemp("unfitting") / "run"
+    shutil.copytree(tiny_checkpoint, run)
+    [weights] = run.glob(f"checkpoints/*/{MODEL_FILE}")
+    state = load_file(str(weights))
+    del state[sorted(state)[0]]
+    save_file(state, str(weights))
+    return run
+
+
 def test_inference_device_names_what_is_wrong():
     assert inference_device("cpu") == torch.device("cpu")
     assert inference_device(torch.device("cpu"), "bf16") == torch.device("cpu")
@@ -59,7 +81,7 @@ def test_inference_device_names_what_is_wrong():
             inference_device(f"cuda:{n}")
 
 
-def test_weights_cut_short_are_a_checkpoint_error_naming_the_file(tiny_checkpoint, cut_checkpoint):
+def test_weights_cut_short_are_a_checkpoint_error_naming_the_file(tiny_checkpoint, cut_checkpoint, tmp_path):
     [weights] = cut_checkpoint.glob(f"checkpoints/*/{MODEL_FILE}")
     with pytest.raises(CheckpointError, match=f"{weights} cannot be read"):
         read_weights(weights)
@@ -69,6 +91,16 @@ def test_weights_cut_short_are_a_checkpoint_error_naming_the_file(tiny_checkpoin
         read_weights(weights.with_name("missing.safetensors"))
     [good] = tiny_checkpoint.glob(f"checkpoints/*/{MODEL_FILE}")
     assert read_weights(good)  # the original still reads: the copy was cut, not the source
+    # the check a server makes without reading the tensors: a cut in the header or in the tensors
+    check_weights(tiny_checkpoint)
+    with pytest.raises(CheckpointError, match=f"{weights} cannot be read"):
+        check_weights(cut_checkpoint)
+    late = tmp_path / "run"
+    shutil.copytree(tiny_checkpoint, late)
+    [file] = late.glob(f"checkpoints/*/{MODEL_FILE}")
+    file.write_bytes(file.read_bytes()[:-10])  # the header whole, the last tensor short
+    with pytest.raises(CheckpointError, match="cannot be read .*not fully covered"):
+        check_weights(late)
 
 
 @pytest.mark.parametrize(
@@ -82,26 +114,32 @@ def test_a_device_this_machine_lacks_is_one_line_before_listening(tiny_checkpoin
     assert "listening" not in proc.stdout  # refused before it bound a port
 
 
-@pytest.mark.parametrize("command", [["worker"], ["serve", "--in-process"]])
+@pytest.mark.parametrize(
+    "command", [["worker"], ["serve", "--in-process"], ["serve", "--workers", "1", "--set", "worker_ready_s=10"]]
+)
 def test_weights_cut_short_stop_the_process_with_one_error_line(cut_checkpoint, command):
     proc = viewscale(*command, "--checkpoint", str(cut_checkpoint), "--listen", "127.0.0.1:0")
     assert proc.returncode == 1, proc.stderr
     no_traceback(proc.stderr)
     errors = [ln for ln in proc.stderr.splitlines() if ln.startswith("error: ")]
     assert len(errors) == 1 and f"{MODEL_FILE} cannot be read" in errors[0], proc.stderr
+    # a server with workers says so before it starts them (before: they were started, failed to
+    # load the weights and were started again until worker_ready_s ran out, 120 s by default)
+    if command[0] == "serve":
+        assert "local worker" not in proc.stderr and "listening" not in proc.stdout, proc.stderr
 
 
-def test_a_local_worker_that_cannot_load_is_reported_with_its_own_error(cut_checkpoint):
+def test_a_local_worker_that_cannot_load_is_reported_with_its_own_error(unfitting_checkpoint):
     """Without --log-dir the workers' stderr still reaches the server's log: the line saying a
     worker exited quotes why, and the server gives up after worker_ready_s, stopped cleanly."""
     proc = viewscale(
-        "serve", "--checkpoint", str(cut_checkpoint), "--listen", "127.0.0.1:0", "--workers", "1",
+        "serve", "--checkpoint", str(unfitting_checkpoint), "--listen", "127.0.0.1:0", "--workers", "1",
         "--set", "worker_ready_s=6",
     )  # fmt: skip
     assert proc.returncode == 1, proc.stderr
     no_traceback(proc.stderr)
     exited = [ln for ln in proc.stderr.splitlines() if "local worker 0" in ln and "exited with code 1" in ln]
-    assert exited and f"{MODEL_FILE} cannot be read" in exited[0], proc.stderr
+    assert exited and "does not fit this model: 1 missing" in exited[0], proc.stderr
     assert "error: 0 of 1 workers ready after 6s" in proc.stderr
 
 
