@@ -21,7 +21,18 @@ import pytest
 import torch
 from cli_process import viewscale
 from grpc_health.v1 import health_pb2, health_pb2_grpc
-from policy_processes import start, start_server, start_worker, stop, worker_flags, worker_info
+from policy_processes import (
+    launch_server,
+    launch_worker,
+    side_by_side,
+    start,
+    start_server,
+    start_worker,
+    stop,
+    stop_all,
+    worker_flags,
+    worker_info,
+)
 from polling import wait_for
 
 from services.core.action_spaces import from_space
@@ -42,6 +53,15 @@ torch.set_num_threads(1)
 @pytest.fixture(scope="module")
 def checkpoint(tiny_checkpoint) -> Path:
     return tiny_checkpoint
+
+
+@pytest.fixture(scope="module")
+def served_f(checkpoint) -> str:
+    """The address of one in-process server of view F, shared by the tests that only call it (a
+    server of their own costs each 4-5 s to start and stop)."""
+    proc, addr = start_server(checkpoint, "--views", "F", "--in-process")
+    yield addr
+    stop(proc)
 
 
 @pytest.fixture(scope="module")
@@ -90,21 +110,18 @@ def reference_actions(ckpt: Path, frames, states, view: str, seed: int) -> np.nd
     return from_space(a, "camera", R_ext=spec.cameras[view].R_ext)
 
 
-def test_one_view_through_the_server_is_the_in_process_sampler(checkpoint, observations):
-    proc, addr = start_server(checkpoint, "--views", "F", "--in-process")
-    try:
-        frames, states = observations[3]
-        with PolicyClient(addr, session_id="robot-1") as client:
-            info = client.info
-            assert info.obs_horizon == 2 and info.pred_horizon == 16 and info.ddim_steps == 4
-            assert info.action_space == "camera" and list(info.default_views) == ["F"]
-            assert {c.name for c in info.cameras} == {"F", "FL", "FR"}
-            chunk = client.get_action({"F": frames["F"]}, states, seed=7)
-        assert chunk.actions.shape == (16, 7) and chunk.start_index == 1 and chunk.views_used == ("F",)
-        assert chunk.obs_stamp_ns == states[-1].stamp_ns and not chunk.degraded
-        assert np.array_equal(chunk.actions, reference_actions(checkpoint, {"F": frames["F"]}, states, "F", 7))
-    finally:
-        stop(proc)
+def test_one_view_through_the_server_is_the_in_process_sampler(checkpoint, served_f, observations):
+    addr = served_f
+    frames, states = observations[3]
+    with PolicyClient(addr, session_id="robot-1") as client:
+        info = client.info
+        assert info.obs_horizon == 2 and info.pred_horizon == 16 and info.ddim_steps == 4
+        assert info.action_space == "camera" and list(info.default_views) == ["F"]
+        assert {c.name for c in info.cameras} == {"F", "FL", "FR"}
+        chunk = client.get_action({"F": frames["F"]}, states, seed=7)
+    assert chunk.actions.shape == (16, 7) and chunk.start_index == 1 and chunk.views_used == ("F",)
+    assert chunk.obs_stamp_ns == states[-1].stamp_ns and not chunk.degraded
+    assert np.array_equal(chunk.actions, reference_actions(checkpoint, {"F": frames["F"]}, states, "F", 7))
 
 
 def test_viewscale_serve_logs_at_its_log_level(checkpoint):
@@ -126,30 +143,27 @@ def test_viewscale_serve_logs_at_its_log_level(checkpoint):
 def test_fan_out_to_workers_gives_the_in_process_actions(checkpoint, observations):
     # the grouping worker waits as long as it takes for a group's views (a loaded machine can hold a
     # view's message back longer than the default 50 ms): the pass count below is then exact
-    workers = [start_worker(checkpoint) for _ in range(3)]
     # the grouping worker logs every module it imports: a worker computes eps and never steps a
     # scheduler, so it must not pay for diffusers' import (which imports torch._dynamo: 1.5 s here)
     imports = dict(os.environ, PYTHONPROFILEIMPORTTIME="1")
-    workers += [
-        start_worker(checkpoint, "--set", "group_wait_ms=60000", env=imports if i == 0 else None) for i in range(3)
-    ]
+    grouping = ("--set", "group_wait_ms=60000")
+    *workers, local = side_by_side(
+        [launch_worker(checkpoint) for _ in range(3)]
+        + [launch_worker(checkpoint, *grouping, env=imports if i == 0 else None) for i in range(3)]
+        + [launch_server(checkpoint, "--views", "F,FL,FR", "--in-process")]
+    )
     # two replicas behind one balanced address (as a DNS name of several replicas): gRPC spreads
     # the streams over them, and the server groups the views by the replica each stream reached
     balanced = "ipv4:" + ",".join(a for _, a in workers[4:6])
-    servers = [
-        start_server(checkpoint, "--views", "F,FL,FR", "--in-process"),
-        # a view per worker, and the three views grouped on one worker (one pass per step)
-        start_server(
-            checkpoint,
-            "--views",
-            "F,FL,FR",
-            "--placement",
-            "spread",
-            *worker_flags(workers[:3]),
-        ),
-        start_server(checkpoint, "--views", "F,FL,FR", "--worker", workers[3][1]),
-        start_server(checkpoint, "--views", "F,FL,FR", "--worker", balanced),
-    ]
+    views = ("--views", "F,FL,FR")
+    servers = [local] + side_by_side(
+        [
+            # a view per worker, and the three views grouped on one worker (one pass per step)
+            launch_server(checkpoint, *views, "--placement", "spread", *worker_flags(workers[:3])),
+            launch_server(checkpoint, *views, "--worker", workers[3][1]),
+            launch_server(checkpoint, *views, "--worker", balanced),
+        ]
+    )
     try:
         got = []
         for _, addr in servers:
@@ -172,18 +186,24 @@ def test_fan_out_to_workers_gives_the_in_process_actions(checkpoint, observation
         assert re.search(r"^import time: .*\| +torch$", imported, re.M)  # the import log is there
         assert "diffusers" not in imported and "torch._dynamo" not in imported
     finally:
-        for p, _ in servers + workers:
-            stop(p)
+        stop_all(servers + workers)
 
 
 def test_precision_bf16_through_a_worker_is_the_in_process_bf16_and_a_worker_computing_otherwise_is_left_out(
     checkpoint, observations
 ):
-    bf16, fp32 = start_worker(checkpoint, "--precision", "bf16"), start_worker(checkpoint)
+    bf16, fp32, here_bf16, here_fp32 = side_by_side(
+        [
+            launch_worker(checkpoint, "--precision", "bf16"),
+            launch_worker(checkpoint),
+            launch_server(checkpoint, "--views", "F", "--in-process", "--precision", "bf16"),
+            launch_server(checkpoint, "--views", "F", "--in-process"),
+        ]
+    )
     servers = {
-        "in-process bf16": start_server(checkpoint, "--views", "F", "--in-process", "--precision", "bf16"),
+        "in-process bf16": here_bf16,
         "fan-out bf16": start_server(checkpoint, "--views", "F", "--precision", "bf16", *worker_flags([bf16, fp32])),
-        "in-process fp32": start_server(checkpoint, "--views", "F", "--in-process"),
+        "in-process fp32": here_fp32,
     }
     try:
         got = {}
@@ -209,8 +229,7 @@ def test_precision_bf16_through_a_worker_is_the_in_process_bf16_and_a_worker_com
         assert err.value.code() == grpc.StatusCode.FAILED_PRECONDITION
         assert "worker computes in fp32, the server asks for bf16" in err.value.details()
     finally:
-        for p, _ in [*servers.values(), bf16, fp32]:
-            stop(p)
+        stop_all([*servers.values(), bf16, fp32])
 
 
 @pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="needs two CPU cores to pin workers to")
@@ -220,7 +239,7 @@ def test_auto_placement_spreads_views_over_workers_on_cores_of_their_own(checkpo
     to the two that do not compete -- two views on the first worker (one pass), one on the second
     -- and none to the third, which would take turns with the first on its core."""
     a, b = sorted(os.sched_getaffinity(0))[:2]
-    workers = [start_worker(checkpoint, prefix=("taskset", "-c", str(c))) for c in (a, b, a)]
+    workers = side_by_side([launch_worker(checkpoint, prefix=("taskset", "-c", str(c))) for c in (a, b, a)])
     server, addr = start_server(checkpoint, "--views", "F,FL,FR", *worker_flags(workers))
     try:
         infos = [worker_info(w) for _, w in workers]
@@ -233,9 +252,7 @@ def test_auto_placement_spreads_views_over_workers_on_cores_of_their_own(checkpo
                 assert chunk.views_used == ("F", "FL", "FR") and not chunk.degraded
         assert [worker_info(w).streams for _, w in workers] == [4, 2, 0]
     finally:
-        stop(server)
-        for p, _ in workers:
-            stop(p)
+        stop_all([server, *workers])
 
 
 @pytest.mark.gpu
@@ -252,9 +269,7 @@ def test_auto_placement_packs_views_on_workers_that_share_a_gpu(checkpoint, obse
                 assert client.get_action(f, s, seed=i).views_used == ("F", "FL", "FR")
         assert sorted(worker_info(w).streams for _, w in workers) == [0, 6]
     finally:
-        stop(server)
-        for p, _ in workers:
-            stop(p)
+        stop_all([server, *workers])
 
 
 class Answer(NamedTuple):
@@ -316,7 +331,7 @@ def test_a_frozen_or_killed_worker_moves_its_views_and_is_readmitted(checkpoint,
     move to another worker, so not one GetAction fails; the answers say so and are what a healthy
     server answers; resumed, and restarted, it is re-admitted."""
     ports = [free_tcp_port() for _ in range(3)]
-    workers = [start_worker(checkpoint, port=p) for p in ports]
+    workers = side_by_side([launch_worker(checkpoint, port=p) for p in ports])
     server, addr = start_server(checkpoint, "--views", "F,FL,FR", *worker_flags(workers))
     robots = Robots(addr, observations)
     try:
@@ -340,9 +355,7 @@ def test_a_frozen_or_killed_worker_moves_its_views_and_is_readmitted(checkpoint,
                 assert not again.degraded and again.views_used == chunk.views_used == ("F", "FL", "FR")
                 np.testing.assert_allclose(again.actions, chunk.actions, rtol=0, atol=1e-6)
     finally:
-        stop(server)
-        for p, _ in workers:
-            stop(p)
+        stop_all([server, *workers])
     assert robots.errors == []  # not one GetAction failed
     assert len(robots.results) > 20
 
@@ -351,7 +364,7 @@ def test_a_killed_replica_behind_a_balanced_address_costs_no_answer(checkpoint, 
     """Two workers behind one balanced address (a DNS name of two replicas), four robots calling in
     a loop, one replica killed: gRPC's balancer routes around it and the views it held move to the
     other replica; the address stays in the pool (taking it out would leave no worker at all)."""
-    workers = [start_worker(checkpoint) for _ in range(2)]
+    workers = side_by_side([launch_worker(checkpoint) for _ in range(2)])
     balanced = "ipv4:" + ",".join(a for _, a in workers)
     server, addr = start_server(checkpoint, "--views", "F,FL,FR", "--worker", balanced)
     robots = Robots(addr, observations)
@@ -366,9 +379,7 @@ def test_a_killed_replica_behind_a_balanced_address_costs_no_answer(checkpoint, 
                 "whole answers after the kill",
             )
     finally:
-        stop(server)
-        for p, _ in workers:
-            stop(p)
+        stop_all([server, *workers])
     assert robots.errors == []  # not one GetAction failed
 
 
@@ -378,7 +389,7 @@ def test_a_frozen_replica_behind_a_balanced_address_is_left_after_a_keepalive(ch
     network). The balancer would keep giving it streams, each costing its request a late step and
     a move; the server's keepalive pings go unanswered, gRPC closes the connection and the balancer
     leaves the replica: the answers are whole and not degraded again. Resumed, it gets streams again."""
-    workers = [start_worker(checkpoint) for _ in range(2)]
+    workers = side_by_side([launch_worker(checkpoint) for _ in range(2)])
     balanced = "ipv4:" + ",".join(a for _, a in workers)
     server, addr = start_server(checkpoint, "--views", "F,FL,FR", "--worker", balanced, "--set", "worker_keepalive_s=1")
     robots = Robots(addr, observations)
@@ -401,9 +412,7 @@ def test_a_frozen_replica_behind_a_balanced_address_is_left_after_a_keepalive(ch
             wait_for(lambda: worker_info(workers[0][1]).streams > before + 30, 60, "the resumed replica given streams")
     finally:
         server_log = server.log_path.read_text()
-        stop(server)
-        for p, _ in workers:
-            stop(p)
+        stop_all([server, *workers])
     assert robots.errors == []
     assert [a.chunk.degraded_reasons for a in after if a.chunk.degraded] == []
     # a worker refusing the pings (GOAWAY too_many_pings) would drop the server's connections to it
@@ -573,10 +582,11 @@ def test_a_chunk_that_is_not_finite_is_never_sent(checkpoint, observations):
     the robot; the server answers the next good request."""
     frames, states = observations[0]
     far = [State(np.array([1e30, 0.0, 0.0]), s.eef_quat_wxyz, s.gripper, s.stamp_ns) for s in states]
-    worker = start_worker(checkpoint)
-    servers = []
+    worker, here = side_by_side(
+        [launch_worker(checkpoint), launch_server(checkpoint, "--in-process", "--set", "max_reach_m=1e38")]
+    )
+    servers = [here]
     try:  # (a server that fails to start must not leave the worker running)
-        servers.append(start_server(checkpoint, "--in-process", "--set", "max_reach_m=1e38"))
         servers.append(start_server(checkpoint, *worker_flags([worker]), "--set", "max_reach_m=1e38"))
         for _, addr in servers:
             with PolicyClient(addr, session_id="far") as client:
@@ -588,9 +598,7 @@ def test_a_chunk_that_is_not_finite_is_never_sent(checkpoint, observations):
                 chunk = client.get_action(frames, states, views=["F", "FL"])
                 assert np.isfinite(chunk.actions).all() and not chunk.degraded, chunk
     finally:
-        for proc, _ in servers:
-            stop(proc)
-        stop(worker[0])
+        stop_all([*servers, worker])
 
 
 def test_a_newer_request_of_a_session_cancels_the_older_and_sessions_are_separate(checkpoint, observations):
@@ -695,7 +703,7 @@ def test_a_robot_leaves_a_frozen_policy_server_after_a_keepalive(checkpoint, obs
     a NAT that forgot the connection): after an unanswered ping the client leaves it, and the other
     server answers. Without keepalive every GetAction ran into the frozen connection to its deadline
     (still so 40 s on, in a trial run)."""
-    servers = [start_server(checkpoint, "--views", "F", "--in-process") for _ in range(2)]
+    servers = side_by_side([launch_server(checkpoint, "--views", "F", "--in-process") for _ in range(2)])
     frames, states = observations[3]
     frames = {"F": frames["F"]}
     seen: list[grpc.ChannelConnectivity] = []
@@ -727,8 +735,7 @@ def test_a_robot_leaves_a_frozen_policy_server_after_a_keepalive(checkpoint, obs
             assert all(e.code in (grpc.StatusCode.DEADLINE_EXCEEDED, grpc.StatusCode.UNAVAILABLE) for e in failed)
             client.channel.unsubscribe(seen.append)
     finally:
-        for p, _ in servers:
-            stop(p)
+        stop_all(servers)
 
 
 def test_health_is_not_serving_until_a_worker_is_ready(checkpoint, observations):
@@ -786,17 +793,14 @@ def test_health_is_not_serving_until_a_worker_is_ready(checkpoint, observations)
     assert "1 of 2 workers ready" in proc.stderr.read()
 
 
-def test_reflection_lists_the_services(checkpoint):
+def test_reflection_lists_the_services(served_f):
     from grpc_reflection.v1alpha.proto_reflection_descriptor_database import ProtoReflectionDescriptorDatabase
 
-    proc, addr = start_server(checkpoint, "--in-process")
-    try:
-        db = ProtoReflectionDescriptorDatabase(grpc.insecure_channel(addr))
-        services = set(db.get_services())
-        assert {"viewscale.v1.Policy", "grpc.health.v1.Health"} <= services
-        assert db.FindFileContainingSymbol("viewscale.v1.Policy").name.endswith("policy.proto")
-    finally:
-        stop(proc)
+    addr = served_f
+    db = ProtoReflectionDescriptorDatabase(grpc.insecure_channel(addr))
+    services = set(db.get_services())
+    assert {"viewscale.v1.Policy", "grpc.health.v1.Health"} <= services
+    assert db.FindFileContainingSymbol("viewscale.v1.Policy").name.endswith("policy.proto")
 
 
 def test_a_bearer_token_is_required_when_configured(checkpoint, observations):
@@ -890,47 +894,44 @@ def test_the_client_imports_without_torch():
     assert out.stdout.split() == ["ok", "False"]
 
 
-def test_the_chunk_runner_executes_chunks_drops_stale_actions_and_never_blocks(checkpoint, observations):
+def test_the_chunk_runner_executes_chunks_drops_stale_actions_and_never_blocks(served_f, observations):
     from services.policy.client import ChunkRunner
 
-    proc, addr = start_server(checkpoint, "--in-process")
-    try:
-        frames, states = observations[0]
-        now = {c: f[-1] for c, f in frames.items()}
-        with PolicyClient(addr, session_id="runner") as client:
-            for bad, says in [
-                (dict(control_hz=0), "control_hz must be positive, got 0"),
-                (dict(n_action_steps=0), "n_action_steps must be 1..15 for this policy (Tp - To + 1), got 0"),
-                (dict(n_action_steps=16), "got 16"),
-                (dict(margin_ticks=-1), "margin_ticks must be 0 or more"),
-            ]:
-                with pytest.raises(ValueError, match=re.escape(says)):
-                    ChunkRunner(client, **bad)
-            lockstep = ChunkRunner(client, blocking=True, seed=0)
-            got = [lockstep.act(t, now, states[-1]) for t in range(20)]
-            assert all(fresh for _, fresh in got) and lockstep.stats.underruns == 0
-            assert lockstep.stats.requests == 3  # 8 actions a chunk: ticks 0, 8 and 16 asked
-            chunk = lockstep.last_chunk
-            assert np.array_equal(got[16][0], chunk.actions[chunk.start_index])
+    addr = served_f
+    frames, states = observations[0]
+    now = {c: f[-1] for c, f in frames.items()}
+    with PolicyClient(addr, session_id="runner") as client:
+        for bad, says in [
+            (dict(control_hz=0), "control_hz must be positive, got 0"),
+            (dict(n_action_steps=0), "n_action_steps must be 1..15 for this policy (Tp - To + 1), got 0"),
+            (dict(n_action_steps=16), "got 16"),
+            (dict(margin_ticks=-1), "margin_ticks must be 0 or more"),
+        ]:
+            with pytest.raises(ValueError, match=re.escape(says)):
+                ChunkRunner(client, **bad)
+        lockstep = ChunkRunner(client, blocking=True, seed=0)
+        got = [lockstep.act(t, now, states[-1]) for t in range(20)]
+        assert all(fresh for _, fresh in got) and lockstep.stats.underruns == 0
+        assert lockstep.stats.requests == 3  # 8 actions a chunk: ticks 0, 8 and 16 asked
+        chunk = lockstep.last_chunk
+        assert np.array_equal(got[16][0], chunk.actions[chunk.start_index])
 
-            live = ChunkRunner(client, seed=100)
-            holding = State(states[-1].eef_pos, states[-1].eef_quat_wxyz, 0.8, states[-1].stamp_ns)
-            action, fresh = live.act(0, now, holding)  # the first chunk is on its way: hold still
-            assert not fresh and np.array_equal(action[:6], np.zeros(6)) and live.stats.underruns == 1
-            # ... with the gripper as it is: closed on an object (reads 0.8), closed (before: open,
-            # so an episode begun holding an object dropped it while the first chunk was on its way)
-            assert action[6] == 1.0
-            deadline = time.monotonic() + 20
-            while live._pending is not None and live._pending[1].is_alive():
-                assert time.monotonic() < deadline
-                time.sleep(0.01)
-            action, fresh = live.act(3, now, holding)  # arrived at tick 3: ticks 0-2 went stale
-            assert fresh and live.stats.stale_dropped == 3
-            c = live.last_chunk
-            assert np.array_equal(action, c.actions[c.start_index + 3])
-            assert live.stats.requests >= 1 and live.stats.failed == 0
-    finally:
-        stop(proc)
+        live = ChunkRunner(client, seed=100)
+        holding = State(states[-1].eef_pos, states[-1].eef_quat_wxyz, 0.8, states[-1].stamp_ns)
+        action, fresh = live.act(0, now, holding)  # the first chunk is on its way: hold still
+        assert not fresh and np.array_equal(action[:6], np.zeros(6)) and live.stats.underruns == 1
+        # ... with the gripper as it is: closed on an object (reads 0.8), closed (before: open,
+        # so an episode begun holding an object dropped it while the first chunk was on its way)
+        assert action[6] == 1.0
+        deadline = time.monotonic() + 20
+        while live._pending is not None and live._pending[1].is_alive():
+            assert time.monotonic() < deadline
+            time.sleep(0.01)
+        action, fresh = live.act(3, now, holding)  # arrived at tick 3: ticks 0-2 went stale
+        assert fresh and live.stats.stale_dropped == 3
+        c = live.last_chunk
+        assert np.array_equal(action, c.actions[c.start_index + 3])
+        assert live.stats.requests >= 1 and live.stats.failed == 0
 
 
 def test_a_rig_given_to_serve_takes_the_place_of_the_checkpoints_calibration(checkpoint, tmp_path, caplog):
@@ -963,7 +964,7 @@ def test_a_rig_given_to_serve_takes_the_place_of_the_checkpoints_calibration(che
     assert not np.allclose(served["F"].position, load_rig("three15", "lift").cameras["F"].position)
 
 
-def test_the_policy_teleop_drives_only_within_an_episode(checkpoint, observations, caplog):
+def test_the_policy_teleop_drives_only_within_an_episode(served_f, observations, caplog):
     """(on hardware it drove the arm from the teleop's start on, an operator resetting the scene
     between two episodes included); `outside_episodes: true` drives there too."""
     from services.pb.sensors_pb2 import RobotState
@@ -971,47 +972,44 @@ def test_the_policy_teleop_drives_only_within_an_episode(checkpoint, observation
     from services.teleop.config import PolicyTeleopConfig
     from services.teleop.policy import PolicyTeleop
 
-    proc, addr = start_server(checkpoint, "--views", "F", "--in-process")
-    try:
-        frames, states = observations[3]
-        s = states[-1]
-        seen = {"F": CameraFrame(*frames["F"][-1])}
+    addr = served_f
+    frames, states = observations[3]
+    s = states[-1]
+    seen = {"F": CameraFrame(*frames["F"][-1])}
 
-        def state(episode: str, gripper: float = 0.4) -> RobotState:
-            msg = RobotState(tick=1, eef_pos=list(s.eef_pos), eef_quat_wxyz=list(s.eef_quat_wxyz), gripper=gripper)
-            msg.header.stamp_ns, msg.episode_id = s.stamp_ns, episode
-            return msg
+    def state(episode: str, gripper: float = 0.4) -> RobotState:
+        msg = RobotState(tick=1, eef_pos=list(s.eef_pos), eef_quat_wxyz=list(s.eef_quat_wxyz), gripper=gripper)
+        msg.header.stamp_ns, msg.episode_id = s.stamp_ns, episode
+        return msg
 
-        for outside in (False, True):
-            # (no calibration will come: no wait for it here; its wait is tested with a bus below)
-            cfg = PolicyTeleopConfig(server=addr, blocking=True, outside_episodes=outside, calibration_wait_s=0)
-            driver = PolicyTeleop(cfg)
-            try:
-                between = driver.act(state(""), None, seen)
-                asked = driver.runner.stats.requests if driver.runner is not None else 0
-                assert (asked > 0) == outside, (outside, asked)
-                if not outside:  # held still, the gripper as it is: no GetAction
-                    assert not between.dp.any() and not between.drot.any() and between.gripper == 0.0
-                    # closed on an object (reads 0.8): kept closed (before: commanded to 0.8, the
-                    # reading, where a gripper holds no grip; and again at every tick's reading)
-                    assert driver.act(state("", 0.8), None, seen).gripper == 1.0
-                driver.reset("lift", "ep-1")
-                with caplog.at_level("WARNING", logger="services.teleop.policy"):
-                    driver.act(state("ep-1"), None, seen)
-                    driver.act(state("ep-1"), None, seen)
-                assert driver.runner.stats.requests > 0
-                # attached to no bus, it heard no calibration: said once, as it began to drive
-                said = [r.getMessage() for r in caplog.records if "no calibration and pose heard" in r.getMessage()]
-                assert len(said) == 1 and said[0].startswith("no calibration and pose heard from camera F in 0 s:")
-                caplog.clear()
-            finally:
-                driver.close()
-    finally:
-        stop(proc)
+    for outside in (False, True):
+        # (no calibration will come: no wait for it here; its wait is tested with a bus below)
+        cfg = PolicyTeleopConfig(server=addr, blocking=True, outside_episodes=outside, calibration_wait_s=0)
+        driver = PolicyTeleop(cfg)
+        try:
+            between = driver.act(state(""), None, seen)
+            asked = driver.runner.stats.requests if driver.runner is not None else 0
+            assert (asked > 0) == outside, (outside, asked)
+            if not outside:  # held still, the gripper as it is: no GetAction
+                assert not between.dp.any() and not between.drot.any() and between.gripper == 0.0
+                # closed on an object (reads 0.8): kept closed (before: commanded to 0.8, the
+                # reading, where a gripper holds no grip; and again at every tick's reading)
+                assert driver.act(state("", 0.8), None, seen).gripper == 1.0
+            driver.reset("lift", "ep-1")
+            with caplog.at_level("WARNING", logger="services.teleop.policy"):
+                driver.act(state("ep-1"), None, seen)
+                driver.act(state("ep-1"), None, seen)
+            assert driver.runner.stats.requests > 0
+            # attached to no bus, it heard no calibration: said once, as it began to drive
+            said = [r.getMessage() for r in caplog.records if "no calibration and pose heard" in r.getMessage()]
+            assert len(said) == 1 and said[0].startswith("no calibration and pose heard from camera F in 0 s:")
+            caplog.clear()
+        finally:
+            driver.close()
 
 
 def test_the_policy_teleop_holds_still_while_a_camera_is_calibrated_elsewhere_than_the_server_has_it(
-    checkpoint, observations, make_bus, tmp_path
+    served_f, observations, make_bus, tmp_path
 ):
     """A camera-space policy's actions are turned into the base frame with the server's calibration
     of each view. A camera that publishes another one (moved and recalibrated since training, or a
@@ -1027,67 +1025,64 @@ def test_the_policy_teleop_holds_still_while_a_camera_is_calibrated_elsewhere_th
 
     moved = tmp_path / "moved.yaml"
     moved.write_text("name: moved\ncameras:\n  F: {yaw_deg: 5}\n")
-    proc, addr = start_server(checkpoint, "--views", "F", "--in-process")
+    addr = served_f
+    frames, states = observations[3]
+    s = states[-1]
+    seen = {"F": CameraFrame(*frames["F"][-1])}
+    msg = RobotState(tick=1, eef_pos=list(s.eef_pos), eef_quat_wxyz=list(s.eef_quat_wxyz), gripper=0.0)
+    msg.header.stamp_ns, msg.episode_id = s.stamp_ns, "ep-1"
+    driver = PolicyTeleop(PolicyTeleopConfig(server=addr, blocking=True, calibration_wait_s=1.0))
+    driver.attach(make_bus())
+    camera_bus = make_bus()
+    calibration = camera_bus.publisher(topics.camera_calibration("F"))
+    pose = camera_bus.publisher(topics.camera_pose("F"))
+
+    def publish(rig: str) -> None:
+        cam = load_rig(rig, "lift").cameras["F"]
+        calibration.put(cam.calibration_msg(32, 32, now_ns()))
+        pose.put(cam.pose_msg(now_ns()))
+
+    def asks() -> int:  # GetAction requests after one more tick
+        driver.act(msg, None, seen)
+        return driver.runner.stats.requests
+
     try:
-        frames, states = observations[3]
-        s = states[-1]
-        seen = {"F": CameraFrame(*frames["F"][-1])}
-        msg = RobotState(tick=1, eef_pos=list(s.eef_pos), eef_quat_wxyz=list(s.eef_quat_wxyz), gripper=0.0)
-        msg.header.stamp_ns, msg.episode_id = s.stamp_ns, "ep-1"
-        driver = PolicyTeleop(PolicyTeleopConfig(server=addr, blocking=True, calibration_wait_s=1.0))
-        driver.attach(make_bus())
-        camera_bus = make_bus()
-        calibration = camera_bus.publisher(topics.camera_calibration("F"))
-        pose = camera_bus.publisher(topics.camera_pose("F"))
-
-        def publish(rig: str) -> None:
-            cam = load_rig(rig, "lift").cameras["F"]
-            calibration.put(cam.calibration_msg(32, 32, now_ns()))
-            pose.put(cam.pose_msg(now_ns()))
-
-        def asks() -> int:  # GetAction requests after one more tick
-            driver.act(msg, None, seen)
-            return driver.runner.stats.requests
-
-        try:
-            driver.reset("lift", "ep-1")
-            time.sleep(1.2)  # the episode begins later than calibration_wait_s after the teleop's start
-            # no calibration heard yet: it holds still for it (up to calibration_wait_s from this first
-            # tick), asking nothing (before: it drove, unchecked)
-            held = driver.act(msg, None, seen)
-            assert not held.dp.any() and not held.drot.any() and driver.runner.stats.requests == 0
-            publish("three15")  # where the checkpoint was trained: it drives
-            time.sleep(0.3)
-            assert asks() > 0 and driver.refused is None
-            publish(str(moved))
-            wait_for(lambda: driver._moved_cameras(), what="the moved camera's calibration")
-            driver.reset("lift", "ep-2")
-            held = driver.act(msg, None, seen)  # holds still, asks nothing
-            assert not held.dp.any() and not held.drot.any() and driver.runner.stats.requests == 0
-            says = driver.refused
-            assert says.startswith("camera F: placed ") and "5.00 degrees away" in says and "serve --rig" in says
-            publish("three15")  # back where the server has it
-            wait_for(lambda: not driver._moved_cameras(), what="the camera's calibration to agree again")
-            assert asks() > 0
-        finally:
-            driver.close()
-
-        # through the whole path: `viewscale eval` against this server (trained and served for
-        # lift's framing) on can, whose sim places the cameras elsewhere: held still, exit 1, why
-        out = tmp_path / "eval"
-        run = viewscale(
-            "eval", "--server", addr, "--task", "can", "--rig", "three15", "--episodes", "1", "--max-ticks", "6",
-            "--views", "F", "--out", str(out),
-        )  # fmt: skip
-        assert run.returncode == 1, run.stdout[-2000:] + run.stderr[-2000:]
-        assert "error: the policy held the arm still in 1 of 1 episodes: camera F: placed " in run.stderr
-        summary = json.loads((out / "report.json").read_text())["summary"]
-        assert summary["refused_episodes"] == 1 and summary["requests"] == 0
+        driver.reset("lift", "ep-1")
+        time.sleep(1.2)  # the episode begins later than calibration_wait_s after the teleop's start
+        # no calibration heard yet: it holds still for it (up to calibration_wait_s from this first
+        # tick), asking nothing (before: it drove, unchecked)
+        held = driver.act(msg, None, seen)
+        assert not held.dp.any() and not held.drot.any() and driver.runner.stats.requests == 0
+        publish("three15")  # where the checkpoint was trained: it drives
+        time.sleep(0.3)
+        assert asks() > 0 and driver.refused is None
+        publish(str(moved))
+        wait_for(lambda: driver._moved_cameras(), what="the moved camera's calibration")
+        driver.reset("lift", "ep-2")
+        held = driver.act(msg, None, seen)  # holds still, asks nothing
+        assert not held.dp.any() and not held.drot.any() and driver.runner.stats.requests == 0
+        says = driver.refused
+        assert says.startswith("camera F: placed ") and "5.00 degrees away" in says and "serve --rig" in says
+        publish("three15")  # back where the server has it
+        wait_for(lambda: not driver._moved_cameras(), what="the camera's calibration to agree again")
+        assert asks() > 0
     finally:
-        stop(proc)
+        driver.close()
+
+    # through the whole path: `viewscale eval` against this server (trained and served for
+    # lift's framing) on can, whose sim places the cameras elsewhere: held still, exit 1, why
+    out = tmp_path / "eval"
+    run = viewscale(
+        "eval", "--server", addr, "--task", "can", "--rig", "three15", "--episodes", "1", "--max-ticks", "6",
+        "--views", "F", "--out", str(out),
+    )  # fmt: skip
+    assert run.returncode == 1, run.stdout[-2000:] + run.stderr[-2000:]
+    assert "error: the policy held the arm still in 1 of 1 episodes: camera F: placed " in run.stderr
+    summary = json.loads((out / "report.json").read_text())["summary"]
+    assert summary["refused_episodes"] == 1 and summary["requests"] == 0
 
 
-def test_a_getaction_that_fails_every_tick_is_logged_once_a_while_not_every_tick(checkpoint, caplog):
+def test_a_getaction_that_fails_every_tick_is_logged_once_a_while_not_every_tick(served_f, caplog):
     """Frames of another size than the policy's (a camera service set up otherwise): every
     GetAction is refused. The policy teleop holds still and says why, once, then how many more
     failed (before: a warning per tick, 20 lines a second, for as long as it lasted)."""
@@ -1098,24 +1093,21 @@ def test_a_getaction_that_fails_every_tick_is_logged_once_a_while_not_every_tick
     from services.teleop.config import PolicyTeleopConfig
     from services.teleop.policy import PolicyTeleop
 
-    proc, addr = start_server(checkpoint, "--views", "F", "--in-process")
+    addr = served_f
+    jpeg = cv2.imencode(".jpg", np.zeros((16, 16, 3), np.uint8))[1].tobytes()  # the policy's are 32x32
+    # (attached to no bus, it hears no calibration: no wait for it here)
+    driver = PolicyTeleop(PolicyTeleopConfig(server=addr, blocking=True, calibration_wait_s=0))
     try:
-        jpeg = cv2.imencode(".jpg", np.zeros((16, 16, 3), np.uint8))[1].tobytes()  # the policy's are 32x32
-        # (attached to no bus, it hears no calibration: no wait for it here)
-        driver = PolicyTeleop(PolicyTeleopConfig(server=addr, blocking=True, calibration_wait_s=0))
-        try:
-            driver.reset("lift", "ep-1")
-            with caplog.at_level("WARNING", logger="services.teleop.policy"):
-                for tick in range(30):
-                    msg = RobotState(tick=tick, eef_pos=[0.45, 0.0, 0.25], eef_quat_wxyz=[0.0, 1.0, 0.0, 0.0])
-                    msg.header.stamp_ns, msg.episode_id = time.time_ns(), "ep-1"
-                    held = driver.act(msg, None, {"F": CameraFrame(jpeg, msg.header.stamp_ns)})
-                    assert not held.dp.any()
-            assert driver.runner.stats.failed == 30 and "INVALID_ARGUMENT" in driver.first_error
-            said = [r.getMessage() for r in caplog.records if "GetAction failed" in r.getMessage()]
-            assert 1 <= len(said) <= 3, said  # the first, then at most one line every 5 s
-            assert "16x16" in said[0] or "size" in said[0], said[0]
-        finally:
-            driver.close()
+        driver.reset("lift", "ep-1")
+        with caplog.at_level("WARNING", logger="services.teleop.policy"):
+            for tick in range(30):
+                msg = RobotState(tick=tick, eef_pos=[0.45, 0.0, 0.25], eef_quat_wxyz=[0.0, 1.0, 0.0, 0.0])
+                msg.header.stamp_ns, msg.episode_id = time.time_ns(), "ep-1"
+                held = driver.act(msg, None, {"F": CameraFrame(jpeg, msg.header.stamp_ns)})
+                assert not held.dp.any()
+        assert driver.runner.stats.failed == 30 and "INVALID_ARGUMENT" in driver.first_error
+        said = [r.getMessage() for r in caplog.records if "GetAction failed" in r.getMessage()]
+        assert 1 <= len(said) <= 3, said  # the first, then at most one line every 5 s
+        assert "16x16" in said[0] or "size" in said[0], said[0]
     finally:
-        stop(proc)
+        driver.close()
