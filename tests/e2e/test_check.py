@@ -8,7 +8,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import yaml
-from cli_process import viewscale
+from cli_process import viewscale, viewscale_each
 
 from services.camera.config import CameraConfig
 from services.session.check import CameraReport, camera_findings
@@ -68,7 +68,7 @@ def test_bad_arguments_are_one_error_line(tmp_path):
     proc = viewscale("check", "--config", str(sim_config(tmp_path)), "--only", "cameras,wheels")
     assert proc.returncode == 2
     assert proc.stderr.strip().splitlines() == ["error: --only wheels: choose from cameras, calibration, robot, policy"]
-    for args, says in [
+    cases = [
         (["--seconds", "0"], "error: --seconds must be positive, got 0"),  # was 7 FAIL lines
         # taken before; on a real rig every camera's calibration would have failed
         (["--max-error-px", "-1"], "error: --max-error-px must be positive, got -1"),
@@ -79,9 +79,10 @@ def test_bad_arguments_are_one_error_line(tmp_path):
             ["--set", "sim.x=1"],
             "error: --set 'sim.x=1' must look like camera.KEY=VALUE or robot.KEY=VALUE or teleop.KEY=VALUE",
         ),
-    ]:
-        proc = viewscale("check", "--config", str(sim_config(tmp_path)), *args)
-        assert proc.returncode == 2
+    ]
+    procs = viewscale_each([["check", "--config", str(sim_config(tmp_path)), *args] for args, _ in cases])
+    for (args, says), proc in zip(cases, procs):
+        assert proc.returncode == 2, args
         assert proc.stderr.strip().splitlines() == [says]
     proc = viewscale("check", "--config", str(tmp_path / "missing.yaml"))
     assert proc.returncode == 2

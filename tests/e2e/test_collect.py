@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from cli_process import user_env
+from cli_process import user_env, viewscale_each
 
 from services.core.rig import Camera, load_rig
 from services.recorder.reader import read_episode
@@ -111,7 +111,7 @@ def test_bad_arguments_fail_fast_with_one_line(tmp_path):
     assert proc.returncode == 2 and "unknown task 'stack'" in proc.stderr
     blocker = tmp_path / "a-file"
     blocker.write_text("")
-    for args, text in [
+    cases = [
         (["--episodes", "-1"], "--episodes must be at least 1"),
         (["--episodes", "0"], "--episodes must be at least 1"),
         (["--size", "0"], "--size must be 16..4096"),
@@ -124,8 +124,9 @@ def test_bad_arguments_fail_fast_with_one_line(tmp_path):
         (["--hz", "inf"], "--hz must be 1..500"),
         (["--hz", "1e-9"], "--hz must be 1..500"),
         (["--set", "sim.control_hz=600"], "control_hz: Input should be less than or equal to 500"),
-    ]:
-        proc = run_collect(tmp_path / "out", *args, timeout=60)
+    ]
+    procs = viewscale_each([["collect", "--out", str(tmp_path / "out"), *args] for args, _ in cases], timeout=60)
+    for (args, text), proc in zip(cases, procs):
         lines = proc.stderr.strip().splitlines()
         assert proc.returncode == 2 and len(lines) == 1 and lines[0].startswith("error: ") and text in lines[0], args
         assert "starting sim" not in proc.stdout  # refused before any service starts

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from cli_process import viewscale
+from cli_process import viewscale, viewscale_each
 
 from services.camera.opencv import fourcc_text
 from services.core.tensors import decode_jpeg
@@ -122,7 +122,7 @@ def test_eval_refuses_bad_input_with_one_line_before_starting_anything(tiny_chec
     ck = ["--checkpoint", str(tiny_checkpoint)]
     note = tmp_path / "note.txt"
     note.write_text("keep me\n")
-    for args, says in [
+    cases = [
         ([*ck, "--task", "pour"], "unknown task 'pour'"),
         ([*ck, "--episodes", "0"], "--episodes must be at least 1, got 0"),
         ([*ck, "--views", "F,XX"], "--views: rig three15 has no camera XX; its cameras: F, FL, FR"),
@@ -146,8 +146,9 @@ def test_eval_refuses_bad_input_with_one_line_before_starting_anything(tiny_chec
         ([*ck, "--out", str(note)], f"--out {note}: not a directory"),
         # another command's output: a report and rollouts in among its files (before: exit 0, they were)
         ([*ck, "--out", str(tiny_checkpoint)], f"--out {tiny_checkpoint} is a training run: choose another folder"),
-    ]:
-        proc = viewscale("eval", "--out", str(tmp_path / "x"), *args)
+    ]
+    procs = viewscale_each([["eval", "--out", str(tmp_path / "x"), *args] for args, _ in cases])
+    for (args, says), proc in zip(cases, procs):
         assert proc.returncode == 2, proc.stderr[-2000:]
         assert proc.stderr.strip().splitlines() == [proc.stderr.strip()] and proc.stderr.startswith("error: ")
         assert says in proc.stderr, (args, proc.stderr)

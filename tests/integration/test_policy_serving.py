@@ -22,6 +22,7 @@ import torch
 from cli_process import viewscale
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 from policy_processes import (
+    launch,
     launch_server,
     launch_worker,
     side_by_side,
@@ -128,16 +129,14 @@ def test_viewscale_serve_logs_at_its_log_level(checkpoint):
     """``viewscale serve`` (whose CLI configures logging at WARNING first) logs what it serves at
     its ``log_level`` setting, INFO by default, as ``python -m services.policy serve`` does."""
     args = ["serve", "--checkpoint", str(checkpoint), "--listen", "127.0.0.1:0", "--views", "F", "--in-process"]
-    proc, addr = start(args, "policy", module="services.cli")
+    (proc, _), (quiet, _) = side_by_side(
+        [launch(a, "policy", module="services.cli") for a in (args, [*args, "--set", "log_level=WARNING"])]
+    )
     try:
         assert "INFO services.policy.server: policy " in proc.log_path.read_text()  # its model, address, views
-    finally:
-        stop(proc)
-    quiet, _ = start([*args, "--set", "log_level=WARNING"], "policy", module="services.cli")
-    try:
         assert "INFO" not in quiet.log_path.read_text()
     finally:
-        stop(quiet)
+        stop_all([proc, quiet])
 
 
 def test_fan_out_to_workers_gives_the_in_process_actions(checkpoint, observations):
