@@ -62,7 +62,9 @@ class RobotiqGripper(Gripper):
     <value> [<VAR> <value> ...]\\n`` answered ``ack``, or ``GET <VAR>\\n`` answered ``<VAR> <value>``.
     Variables used here: ``ACT`` (1 activates), ``STA`` (3 once activated), ``GTO`` (1: go to the
     requested position), ``POS`` (0 open .. 255 closed), ``SPE`` and ``FOR`` (speed and force,
-    0 .. 255). A closure c maps to ``POS round(255 c)``, the gripper's raw range.
+    0 .. 255). A closure c maps to ``POS round(255 c)``, the gripper's raw range. A move to the
+    position last sent on this connection sends nothing: each request is a round trip in the robot's
+    control tick, and a policy's closure changes by less than a step of 1/255 from tick to tick.
     """
 
     def __init__(self, cfg: Any, host: str):
@@ -71,6 +73,7 @@ class RobotiqGripper(Gripper):
         self._lock = threading.Lock()  # one request at a time (the control loop and a recovery thread)
         self._sock: socket.socket | None = None
         self._buf = b""
+        self._sent_pos: int | None = None  # POS last sent on this connection
         self.connect()
 
     @classmethod
@@ -135,7 +138,10 @@ class RobotiqGripper(Gripper):
 
     def move(self, closure: float) -> None:
         pos = round(255 * min(max(float(closure), 0.0), 1.0))
+        if pos == self._sent_pos and self._sock is not None:
+            return
         self._set(POS=pos, SPE=self.cfg.speed, FOR=self.cfg.force, GTO=1)
+        self._sent_pos = pos
 
     def position(self) -> float:
         return min(max(self._get("POS") / 255.0, 0.0), 1.0)
@@ -150,6 +156,7 @@ class RobotiqGripper(Gripper):
             except OSError:
                 pass
         self._sock = None
+        self._sent_pos = None  # a new connection sends its first position, whatever it is
 
     def close(self) -> None:
         with self._lock:

@@ -628,8 +628,17 @@ def test_robotiq_activates_moves_and_reads_over_its_socket(robotiq):
         gripper.move(0.5)
         assert robotiq.lines[-1] == "SET POS 128 SPE 200 FOR 60 GTO 1"
         assert gripper.position() == pytest.approx(128 / 255) and robotiq.lines[-1] == "GET POS"
+        # the position it holds is not sent again (before: a SET, a round trip, every such tick)
+        sent = len(robotiq.lines)
+        gripper.move(0.5)
+        gripper.move(0.501)  # (127.8: POS 128)
+        assert len(robotiq.lines) == sent
         gripper.move(7.0)  # clamped to closed
-        assert robotiq.vars["POS"] == 255
+        assert robotiq.vars["POS"] == 255 and len(robotiq.lines) == sent + 1
+        # a new connection sends it again
+        gripper.reconnect()
+        gripper.move(1.0)
+        assert robotiq.lines[-1] == "SET POS 255 SPE 200 FOR 60 GTO 1"
     finally:
         gripper.close()
 
