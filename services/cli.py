@@ -78,12 +78,18 @@ def _collect(args: argparse.Namespace) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt as exc:
-        print(
-            f"interrupted ({exc or 'SIGINT'}): services stopped; episodes recorded so far are in {args.out}",
-            file=sys.stderr,
-        )
-        return 130
+        return _interrupted(exc, Path(args.out), "episodes")
     return 0 if len(result.recorded) >= args.episodes else 1
+
+
+def _interrupted(exc: KeyboardInterrupt, folder: Path, what: str) -> int:
+    """The line of a collection or evaluation stopped by a signal: the services it started are
+    stopped, and where what was recorded is, or that nothing was (before: "... so far are in OUT"
+    for a folder a signal during the start had never made)."""
+    n = len(list(folder.glob("*.mcap"))) if folder.is_dir() else 0
+    kept = f"{n} {what} in {folder}" if n else f"no {what} recorded"
+    print(f"interrupted ({exc or 'SIGINT'}): services stopped; {kept}", file=sys.stderr)
+    return 130
 
 
 def _eval(args: argparse.Namespace) -> int:
@@ -126,8 +132,7 @@ def _eval(args: argparse.Namespace) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt as exc:
-        print(f"interrupted ({exc or 'SIGINT'}): services stopped; rollouts so far are in {args.out}", file=sys.stderr)
-        return 130
+        return _interrupted(exc, Path(args.out) / "rollouts", "rollouts")
     r = result.report
     print(
         f"{r['task']}: {r['successes']}/{r['episodes']} successful ({100 * r['success_rate']:.0f} %, "

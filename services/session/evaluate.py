@@ -29,6 +29,7 @@ import os
 import statistics
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
@@ -105,6 +106,13 @@ def _server_facts(address: str, tls_ca: str | None = None, timeout_s: float = 15
         ca = Path(tls_ca).read_bytes() if tls_ca else None
     except OSError as exc:
         raise EvalError(f"--tls-ca {tls_ca}: {exc.strerror}") from None
+    # a server that is down, or still starting, is retried for timeout_s: said after a moment,
+    # rather than a silent wait (the error at the end says why it never answered)
+    waiting = threading.Timer(
+        2.0, lambda: print(f"waiting for the policy server at {address} (up to {timeout_s:.0f} s)", flush=True)
+    )
+    waiting.daemon = True
+    waiting.start()
     try:
         with PolicyClient(
             address, session_id="eval-info", token=token, tls_ca=ca, connect_timeout_s=timeout_s
@@ -114,6 +122,8 @@ def _server_facts(address: str, tls_ca: str | None = None, timeout_s: float = 15
         raise EvalError(f"--server {address}: {exc}") from None
     except ValueError as exc:  # a --tls-ca file that holds no certificate
         raise EvalError(f"--tls-ca {tls_ca}: {exc}") from None
+    finally:
+        waiting.cancel()
     cams = list(info.cameras)
     return {
         "path": f"{info.model_id} served by {address}",

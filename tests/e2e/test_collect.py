@@ -210,6 +210,7 @@ def test_sigterm_mid_session_keeps_the_partial_episode_and_stops_every_service(t
     assert not alive, f"services left running: {[c.cmdline() for c in alive]}"
     assert not list(tmp_path.glob("*.part")), "an episode was left unclosed"
     episodes = [read_episode(f) for f in sorted(tmp_path.glob("*.mcap"))]
+    assert f"services stopped; {len(episodes)} episodes in {tmp_path}" in err, err
     done = [e for e in episodes if e.metadata["success"]]
     cut = [e for e in episodes if not e.metadata["success"]]
     assert len(done) >= 1 and all(not e.flags for e in done)

@@ -5,13 +5,14 @@ scripted-expert row through the same path, and `viewscale rerender`."""
 from __future__ import annotations
 
 import json
+import signal
 import subprocess
 import sys
 from pathlib import Path
 
 import cv2
 import numpy as np
-from cli_process import viewscale, viewscale_each
+from cli_process import user_env, viewscale, viewscale_each
 
 from services.camera.opencv import fourcc_text
 from services.core.tensors import decode_jpeg
@@ -89,6 +90,22 @@ def test_eval_against_a_running_server_single_view_then_composed(tiny_checkpoint
     proc = viewscale("eval", "--server", server.address, "--out", str(tmp_path / "gone"))
     assert proc.returncode == 2 and "no policy server" in proc.stderr, proc.stderr[-2000:]
     assert "Connection refused" in proc.stderr  # why, not only DEADLINE_EXCEEDED
+    # and while it retried, what it waited for (before: 15 s of nothing)
+    assert f"waiting for the policy server at {server.address} (up to 15 s)" in proc.stdout
+
+
+def test_an_eval_stopped_while_it_waits_for_its_server_says_it_recorded_nothing(tmp_path):
+    """(before: "services stopped; rollouts so far are in OUT", a folder it had not made)"""
+    from services.core.bus import free_tcp_port
+
+    closed = f"127.0.0.1:{free_tcp_port()}"
+    cmd = [sys.executable, "-m", "services.cli", "eval", "--server", closed, "--out", str(tmp_path / "eval")]
+    proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=user_env())
+    assert proc.stdout.readline().startswith(f"waiting for the policy server at {closed}")
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=30)
+    assert proc.returncode == 130 and err.strip() == "interrupted (SIGTERM): services stopped; no rollouts recorded"
+    assert not (tmp_path / "eval" / "rollouts").exists()
 
 
 def test_the_expert_row_goes_through_the_same_path(tmp_path):
