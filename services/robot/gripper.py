@@ -64,7 +64,8 @@ class RobotiqGripper(Gripper):
     requested position), ``POS`` (0 open .. 255 closed), ``SPE`` and ``FOR`` (speed and force,
     0 .. 255). A closure c maps to ``POS round(255 c)``, the gripper's raw range. A move to the
     position last sent on this connection sends nothing: each request is a round trip in the robot's
-    control tick, and a policy's closure changes by less than a step of 1/255 from tick to tick.
+    control tick, and a policy's closure often moves by less than the gripper's step (1/255) from
+    one tick to the next.
     """
 
     def __init__(self, cfg: Any, host: str):
