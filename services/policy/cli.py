@@ -165,9 +165,12 @@ def _serve(args: argparse.Namespace) -> int:
             async def serve(stop):
                 supervisor = asyncio.create_task(local.supervise(stop))  # a local worker that exits: restarted
                 try:
-                    return await serve_policy(cfg, stop, addresses, _announce)
+                    rc = await serve_policy(cfg, stop, addresses, _announce)
                 finally:
                     supervisor.cancel()
+                if local.failed:  # (it stopped the server)
+                    raise RuntimeError(local.failed)
+                return rc
 
             return _run(serve)
     except (RuntimeError, TimeoutError, CheckpointError, ListenError, OutputError) as exc:  # (weights, port taken)

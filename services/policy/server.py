@@ -998,6 +998,9 @@ class LocalWorkers:
         self.log_dir = Path(self._own_logs.name) if self._own_logs else log_dir
         self.procs: list[Any] = []
         self.addresses: list[str] = []
+        # why serving ended when every local worker, at its first start, exited before it had
+        # loaded the model (and no other worker was given): ``supervise`` stops then
+        self.failed: str | None = None
 
     def last_words(self, i: int) -> str:
         """The last line worker ``i`` wrote to its stderr ('' if none)."""
@@ -1054,13 +1057,20 @@ class LocalWorkers:
         """Until ``stop``, restart a worker that exited, on its address: the pool's health check
         re-admits it once its model is loaded. One that keeps exiting soon after its start waits
         longer each time (1 s doubling to 60 s), so a worker that cannot start does not spin. (A
-        Ctrl-C reaches the workers too: stopping, the server restarts none.)"""
+        Ctrl-C reaches the workers too: stopping, the server restarts none.)
+
+        When every local worker's first process exits before it has loaded the model (weights that
+        do not fit it, a device that fails), and no other worker was given, a restart would fail
+        the same way: it sets ``failed`` with the first one's error and ``stop``, at once rather
+        than when ``worker_ready_s`` runs out."""
         import subprocess
 
         loop = asyncio.get_running_loop()
         started = [time.monotonic()] * len(self.procs)
         delay = [0.5] * len(self.procs)  # doubled at a quick exit: 1 s the first time
         due: list[float | None] = [None] * len(self.procs)
+        first = list(self.procs)  # the processes started with the server (their stdout is a pipe)
+        never_ready: dict[int, str] = {}  # of those, the ones that exited before their ready line
         while not stop.is_set():
             await asyncio.sleep(period_s)
             for i, p in enumerate(self.procs):
@@ -1068,6 +1078,15 @@ class LocalWorkers:
                     return
                 now = time.monotonic()
                 if due[i] is None and p.poll() is not None:
+                    if p is first[i] and "ready worker " not in (p.stdout.read() if p.stdout else ""):
+                        said = self.last_words(i).removeprefix("error: ")
+                        never_ready[i] = f"local worker {i} exited with code {p.returncode}" + (
+                            f": {said}" if said else ""
+                        )
+                        if len(never_ready) == len(self.procs) and not self.cfg.worker:
+                            self.failed = f"no local worker could load the model; {never_ready[min(never_ready)]}"
+                            stop.set()
+                            return
                     delay[i] = min(2 * delay[i], 60.0) if now - started[i] < quick_exit_s else 1.0
                     due[i] = now + delay[i]
                     log.warning(
