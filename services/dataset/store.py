@@ -43,6 +43,9 @@ class DatasetError(ValueError):
     """A user-facing problem with a dataset build or load; one clear line."""
 
 
+DAMAGED = "the dataset is damaged; build it again with `viewscale dataset build`, or copy it again"
+
+
 @dataclass
 class StoredDemo:
     """A pseudo-demo in the cache: where its arrays live and their length."""
@@ -58,7 +61,18 @@ class StoredDemo:
         return self.episode_dir / f"{self.view}.{name}.npy"
 
     def load(self, name: str, mmap: bool = True) -> np.ndarray:
-        return np.load(self.path(name), mmap_mode="r" if mmap else None)
+        """One of the pseudo-demo's arrays; a file missing, cut short (a copy interrupted) or of
+        the wrong length is a ``DatasetError`` naming it."""
+        path = self.path(name)
+        try:
+            arr = np.load(path, mmap_mode="r" if mmap else None)
+        except FileNotFoundError:
+            raise DatasetError(f"{path} is missing: {DAMAGED}") from None
+        except (OSError, ValueError, EOFError) as exc:
+            raise DatasetError(f"{path} cannot be read ({exc}): {DAMAGED}") from None
+        if name != "ends" and len(arr) != self.rows:  # (ends: one per segment)
+            raise DatasetError(f"{path} holds {len(arr)} rows, not the {self.rows} the dataset lists: {DAMAGED}")
+        return arr
 
 
 class DatasetStore:

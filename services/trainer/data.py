@@ -71,6 +71,7 @@ class PseudoDemoDataset(Dataset):
             states.append(d.load("state", mmap=False))
             actions.append(d.load("action", mmap=False))
             ends = d.load("ends", mmap=False)
+            d.load("frames", mmap=True)  # (mapped and let go: a file cut short is said now, not mid-run)
             self.longest_segment = max(self.longest_segment, longest_segment(ends))
             starts = chunk_starts(ends, self.To, self.Tp, self.Ta)
             index.append(np.concatenate([np.full((len(starts), 1), j, np.int64), starts], axis=1))

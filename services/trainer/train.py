@@ -302,6 +302,37 @@ def dist_env() -> tuple[int, int, int]:
     return int(os.environ.get("RANK", 0)), int(os.environ.get("LOCAL_RANK", 0)), int(os.environ.get("WORLD_SIZE", 1))
 
 
+def _next_batch(it: Iterator[Any], step: int, out: Path) -> Any:
+    """The loader's next batch. What fails in the loader (a worker's error, which torch raises again
+    here with the worker's traceback as text, or a second Ctrl-C while waiting for a batch) leaves
+    without a reference to the loader's iterator: neither the traceback into the loader nor this
+    frame's ``it``. The iterator's workers ignore SIGTERM (``_loader_leaves_stops_to_training``),
+    so an exception that kept it alive to the interpreter's exit left the run hung there."""
+    try:
+        return next(it)
+    except BaseException as exc:
+        failure = exc.with_traceback(None)
+        failure.__context__ = None
+    del it  # (this frame is in the traceback of what is raised below)
+    if not isinstance(failure, Exception):  # KeyboardInterrupt, SystemExit
+        raise failure
+    raise _loader_failed(failure, step, out)
+
+
+def _loader_failed(exc: Exception, step: int, out: Path) -> TrainingError:
+    """One line for a loader that failed: a worker that died (killed: out of memory, most often),
+    or the error a worker met reading the dataset (a file removed or cut short under the run)."""
+    text = str(exc).strip()
+    kept = f"the last checkpoint ({ckpt.latest_checkpoint(out) or 'none yet'}) is kept"
+    if text.startswith("DataLoader worker (pid"):  # torch's words for a worker gone
+        died = text.split(". ")[0].rstrip(".")
+        return TrainingError(f"training stopped at step {step}: {died}; {kept}: run the same command to resume")
+    said = text.splitlines()[-1] if text else type(exc).__name__
+    if "Original Traceback" in text:  # a worker's error, its last line "module.Error: message"
+        said = said.split(": ", 1)[-1]
+    return TrainingError(f"reading the dataset failed at step {step}: {said}; {kept}")
+
+
 def _to_device(batch: dict[str, torch.Tensor], device: torch.device) -> dict[str, torch.Tensor]:
     return {k: v.to(device, non_blocking=True) for k, v in batch.items() if torch.is_tensor(v)}
 
@@ -634,7 +665,7 @@ def _train(
                 result.stopped = True
                 break
             t0 = time.perf_counter()
-            batch = _to_device(next(it), device)
+            batch = _to_device(_next_batch(it, step, out), device)
             wait += time.perf_counter() - t0
 
             lr = lr_at(step, cfg)
@@ -723,6 +754,11 @@ def _train(
         if result.stopped and main and step > saved_at:
             result.checkpoint = save(step, result.loss, result.val_loss)
             plot_losses(history, out / "loss.png")
+    except RuntimeError as exc:
+        # torch's SIGCHLD handler raises this wherever the training is when a loader worker dies
+        if str(exc).startswith("DataLoader worker (pid"):
+            raise _loader_failed(exc, step, out) from None
+        raise
     finally:
         if bar is not None:
             bar.close()

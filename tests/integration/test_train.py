@@ -6,8 +6,10 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
+import multiprocessing
 import os
 import re
+import shutil
 import signal
 import subprocess
 import sys
@@ -25,6 +27,7 @@ from tiny_models import TINY_VIT
 from services.cli import main as viewscale
 from services.core.config import ConfigError
 from services.core.normalizer import Normalizer
+from services.dataset.store import DAMAGED, DatasetStore
 from services.policy.checkpoint import CheckpointError, latest_checkpoint, load_policy
 from services.policy.model import action_steps, sample
 from services.trainer.config import train_config_from_dict
@@ -551,6 +554,74 @@ def test_a_run_refused_by_the_dataset_leaves_no_run_folder(sim_dataset, tmp_path
         rc = viewscale(["train", "--data", str(sim_dataset), "--out", str(out), "--steps", "1", *extra])
         assert rc == 2 and says in capsys.readouterr().err
         assert not (tmp_path / "runs").exists()  # nor the parent made for it
+
+
+def _cut_short(path: Path) -> None:
+    with path.open("r+b") as f:
+        f.truncate(path.stat().st_size // 2)
+
+
+def test_a_dataset_file_cut_short_is_one_error_line_naming_it(sim_dataset, tmp_path, capsys):
+    """(a dataset copied to the training machine by a copy that was interrupted: a frames file cut
+    short went unseen until a loader worker mapped it, then a worker's traceback, and the run hung)"""
+    ds = tmp_path / "ds"
+    shutil.copytree(sim_dataset, ds)
+    for name in ("frames", "action"):
+        store = DatasetStore(ds)
+        victim = store.demos[-1].path(name)
+        _cut_short(victim)
+        rc = viewscale(["train", "--data", str(ds), "--out", str(tmp_path / name), "--steps", "2", "--workers", "0"])
+        err = capsys.readouterr().err.strip()
+        assert rc == 2 and err.startswith(f"error: {victim} cannot be read (") and err.endswith(DAMAGED), err
+        assert len(err.splitlines()) == 1 and not (tmp_path / name).exists()
+        shutil.copy(sim_dataset / victim.relative_to(ds), victim)
+    (ds / "episodes" / store.demos[0].episode_dir.name / f"{store.demos[0].view}.state.npy").unlink()
+    with pytest.raises(TrainingError, match=r"state\.npy is missing: the dataset is damaged"):
+        load_train_data(train_config_from_dict(tiny(ds, tmp_path / "run")))
+
+
+def test_a_frames_file_damaged_while_training_ends_it_with_one_line_and_its_workers(sim_dataset, tmp_path):
+    """(its loader worker's error came back with the worker's traceback, which held the loader; its
+    workers, which leave stop signals to the training, then outlived the run: a CLI run hung at exit)"""
+    ds = tmp_path / "ds"
+    shutil.copytree(sim_dataset, ds)
+    cfg = train_config_from_dict(tiny(ds, tmp_path / "run", steps=20, num_workers=1, checkpoint_every=0))
+    data = load_train_data(cfg)  # opened whole, then the files go bad under the run
+    for demo in data.train.demos:
+        _cut_short(demo.path("frames"))
+    with pytest.raises(TrainingError) as err:
+        train(cfg, data=data)
+    said = str(err.value)
+    assert re.fullmatch(
+        r"reading the dataset failed at step 0: \S+frames\.npy cannot be read \(mmap length is greater than "
+        r"file size\): the dataset is damaged; .* copy it again; the last checkpoint \(none yet\) is kept",
+        said,
+    ), said
+    assert multiprocessing.active_children() == []  # the loader's worker is gone
+
+
+def test_a_loader_worker_killed_ends_the_training_with_one_line(sim_dataset, tmp_path):
+    """(a loader worker killed, by the kernel's out-of-memory killer most often: torch's SIGCHLD
+    handler raised its RuntimeError wherever the training was, a traceback out of the CLI)"""
+    killed = []
+
+    def kill_a_worker(row):
+        if row["step"] == 2 and not killed:
+            killed.append(multiprocessing.active_children()[0].pid)
+            os.kill(killed[0], signal.SIGKILL)
+
+    out = tmp_path / "run"
+    cfg = train_config_from_dict(tiny(sim_dataset, out, steps=500, num_workers=2, checkpoint_every=1))
+    with pytest.raises(TrainingError) as err:
+        train(cfg, on_progress=kill_a_worker)
+    said = str(err.value)
+    assert re.fullmatch(
+        rf"training stopped at step \d+: DataLoader worker \(pid(\(s\))? {killed[0]}\) (is killed by signal: "
+        rf"Killed|exited unexpectedly); the last checkpoint \({re.escape(str(out))}/checkpoints/step_\d+\) is "
+        r"kept: run the same command to resume",
+        said,
+    ), said
+    assert multiprocessing.active_children() == []
 
 
 def test_a_training_holds_its_dataset_against_a_build_over_it(sim_dataset, tmp_path):
