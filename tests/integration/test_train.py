@@ -556,6 +556,18 @@ def test_a_run_refused_by_the_dataset_leaves_no_run_folder(sim_dataset, tmp_path
         assert not (tmp_path / "runs").exists()  # nor the parent made for it
 
 
+def test_a_model_setting_out_of_range_is_one_line_before_anything_is_made(sim_dataset, tmp_path, capsys):
+    """(``--set model.down_dims=[]`` was an IndexError traceback from the U-Net's construction; the
+    whole list of settings is in test_train_parts.py)"""
+    out = tmp_path / "runs" / "run"
+    args = ["--out", str(out), "--steps", "1", "--set", "model.down_dims=[]"]
+    rc = viewscale(["train", "--data", str(sim_dataset), *args])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and err.startswith("error: invalid TrainConfig config: model.down_dims: "), err
+    assert len(err.splitlines()) == 1
+    assert not (tmp_path / "runs").exists()
+
+
 def _cut_short(path: Path) -> None:
     with path.open("r+b") as f:
         f.truncate(path.stat().st_size // 2)

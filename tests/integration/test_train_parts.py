@@ -57,6 +57,45 @@ def test_bad_config_is_a_clear_error():
         ("ema.min_decay=0.99", "ema: min_decay 0.99 is above max_decay 0.5"),
         ("views=[F,F]", "views: names F more than once"),
         ("views=[]", "views: names no view"),
+        # the model's and its schedulers' settings: each was an IndexError, a ZeroDivisionError, a
+        # torch or diffusers error at the model's first pass, or a policy that acts on nothing
+        ("model.down_dims=[]", "model.down_dims: Tuple should have at least 1 item"),
+        ("model.down_dims=[-8,16]", "model.down_dims.0: Input should be greater than 0"),
+        ("model.n_groups=0", "model.n_groups: Input should be greater than or equal to 1"),
+        ("model.kernel_size=4", "model: kernel_size 4 must be odd"),
+        ("model.obs_horizon=0", "model.obs_horizon: Input should be greater than or equal to 1"),
+        ("model.n_action_steps=0", "model.n_action_steps: Input should be greater than or equal to 1"),
+        (
+            "model.diffusion_step_embed_dim=2",
+            "model.diffusion_step_embed_dim: Input should be greater than or equal to 4",
+        ),
+        ("model.diffusion_step_embed_dim=7", "model.diffusion_step_embed_dim: Input should be a multiple of 2"),
+        ("model.action_dim=0", "model.action_dim: Input should be greater than or equal to 1"),
+        ("model.image_size=[0,84]", "model.image_size.0: Input should be greater than 0"),
+        (
+            "model.noise.num_train_timesteps=0",
+            "model.noise.num_train_timesteps: Input should be greater than or equal to 1",
+        ),
+        (
+            "model.noise.num_inference_steps=0",
+            "model.noise.num_inference_steps: Input should be greater than or equal to 1",
+        ),
+        (
+            "model.noise.num_inference_steps=200",
+            "model.noise: num_inference_steps 200 is more than num_train_timesteps 100",
+        ),
+        ("model.noise.beta_schedule=cosine", "model.noise.beta_schedule: Input should be 'linear', 'scaled_linear' or"),
+        (
+            "model.noise.prediction_type=v_prediction",
+            "model.noise.prediction_type: Input should be 'epsilon' or 'sample'",
+        ),
+        ("model.encoder.width=0", "model.encoder.width: Input should be greater than or equal to 1"),
+        ("model.encoder.num_keypoints=0", "model.encoder.num_keypoints: Input should be greater than or equal to 1"),
+        ("model.encoder.feature_dim=0", "model.encoder.feature_dim: Input should be greater than or equal to 1"),
+        ("model.encoder.crop_ratio=0", "model.encoder.crop_ratio: Input should be greater than 0"),
+        ("model.encoder.crop=[0,0]", "model.encoder.crop.0: Input should be greater than 0"),
+        ("model.encoder.stage_strides=[0,1,1,1]", "model.encoder.stage_strides.0: Input should be greater than 0"),
+        ("model.encoder.lora_rank=-1", "model.encoder.lora_rank: Input should be greater than or equal to 0"),
     ],
 )
 def test_settings_out_of_range_are_refused_naming_the_field(override, says):

@@ -70,6 +70,16 @@ def test_resnet_uses_groupnorm_and_eval_is_deterministic():
     assert not torch.allclose(enc(img), enc(img))  # random crops differ between calls
 
 
+def test_groupnorm_groups_divide_any_width():
+    """(diffusion_policy's channels // 16 groups: a width it does not divide, 50, failed in GroupNorm)"""
+    norms = lambda enc: [m for m in enc.modules() if isinstance(m, nn.GroupNorm)]  # noqa: E731
+    stock = build_encoder(EncoderConfig(width=64, num_keypoints=4, feature_dim=8), (32, 32))
+    assert {(m.num_channels, m.num_groups) for m in norms(stock)} == {(64, 4), (128, 8), (256, 16), (512, 32)}
+    odd = build_encoder(EncoderConfig(width=50, stage_strides=(1, 2, 1, 1), num_keypoints=4, feature_dim=8), (32, 32))
+    assert {(m.num_channels, m.num_groups) for m in norms(odd)} == {(50, 2), (100, 5), (200, 10), (400, 25)}
+    assert odd.eval()(torch.rand(2, 3, 32, 32) * 2 - 1).shape == (2, 8)
+
+
 def test_feature_relu_is_robomimics_activation_after_the_projection_and_on_for_the_paper_presets():
     from services.policy.model.presets import preset
 

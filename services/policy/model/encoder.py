@@ -22,7 +22,7 @@ from typing import Any, Literal
 
 import torch
 import torch.nn.functional as F
-from pydantic import Field, model_validator
+from pydantic import Field, PositiveInt, model_validator
 from torch import nn
 
 from services.core.config import Frozen
@@ -48,20 +48,21 @@ IMAGENET_STD = (0.229, 0.224, 0.225)
 
 class EncoderConfig(Frozen):
     kind: Literal["resnet18", "dinov3"] = "resnet18"  # image backbone
-    crop: tuple[int, int] | None = None  # (h, w) fed to the backbone (random crop in training, centre in eval)
-    crop_ratio: float = 0.9  # with crop unset: crop = ratio * image size (84 -> 76, as diffusion_policy)
-    feature_dim: int = 64  # output features per frame (the linear projection's width)
+    # (h, w) fed to the backbone (random crop in training, centre in eval)
+    crop: tuple[PositiveInt, PositiveInt] | None = None
+    crop_ratio: float = Field(0.9, gt=0, le=1)  # with crop unset: crop = ratio * image size (84 -> 76)
+    feature_dim: int = Field(64, ge=1)  # output features per frame (the linear projection's width)
     # resnet18
-    width: int = 64  # channels of the first stage (64 = ResNet-18; 2x per stage after it)
-    stage_strides: tuple[int, int, int, int] = (1, 2, 2, 2)  # stride of each stage's first block
+    width: int = Field(64, ge=1)  # channels of the first stage (64 = ResNet-18; 2x per stage after it)
+    stage_strides: tuple[PositiveInt, PositiveInt, PositiveInt, PositiveInt] = (1, 2, 2, 2)  # each stage's first stride
     stem_pool: bool = True  # 3x3/2 max-pool after the 7x7/2 stem conv
-    num_keypoints: int = 32  # spatial-softmax keypoints (each gives x, y)
+    num_keypoints: int = Field(32, ge=1)  # spatial-softmax keypoints (each gives x, y)
     feature_relu: bool = False  # ReLU on the projected features, as robomimic's encoder (diffusion_policy's)
     # dinov3
     vit_config: dict[str, Any] = Field(default_factory=lambda: dict(DINOV3_BASE))  # DINOv3ViTConfig fields
     vit_weights: str | None = None  # local safetensors file (or a dir holding model.safetensors); None = random init
-    lora_rank: int = 16  # LoRA rank on the attention projections; 0 = fine-tune the whole ViT
-    lora_alpha: int = 32  # LoRA scaling numerator
+    lora_rank: int = Field(16, ge=0)  # LoRA rank on the attention projections; 0 = fine-tune the whole ViT
+    lora_alpha: int = Field(32, ge=1)  # LoRA scaling numerator
     lora_targets: tuple[str, ...] = ("q_proj", "k_proj", "v_proj", "o_proj")  # module names LoRA wraps
 
     @model_validator(mode="after")
@@ -107,8 +108,12 @@ def crop_images(x: torch.Tensor, crop: tuple[int, int], random: bool) -> torch.T
 
 
 def _gn(channels: int) -> nn.GroupNorm:
-    # diffusion_policy's replace_bn_with_gn uses channels // 16 groups
-    return nn.GroupNorm(max(1, channels // 16), channels)
+    # diffusion_policy's replace_bn_with_gn uses channels // 16 groups; for a width it does not
+    # divide, the largest group count below it that does
+    groups = max(1, channels // 16)
+    while channels % groups:
+        groups -= 1
+    return nn.GroupNorm(groups, channels)
 
 
 class BasicBlock(nn.Module):

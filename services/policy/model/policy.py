@@ -11,8 +11,10 @@ normaliser writes them); the normaliser travels with the checkpoint.
 
 from __future__ import annotations
 
+from typing import Literal
+
 import torch
-from pydantic import Field, model_validator
+from pydantic import Field, PositiveInt, model_validator
 from torch import nn
 
 from services.core.config import Frozen
@@ -21,29 +23,41 @@ from services.policy.model.unet1d import ConditionalUnet1D
 
 
 class NoiseConfig(Frozen):
-    num_train_timesteps: int = 100  # DDPM steps in training
-    beta_schedule: str = "squaredcos_cap_v2"  # diffusers beta schedule
+    num_train_timesteps: int = Field(100, ge=1)  # DDPM steps in training
+    beta_schedule: Literal["linear", "scaled_linear", "squaredcos_cap_v2"] = "squaredcos_cap_v2"  # diffusers'
     clip_sample: bool = True  # clip the predicted x_0 to [-1, 1] while sampling
-    prediction_type: str = "epsilon"  # what the U-Net predicts
-    num_inference_steps: int = 10  # DDIM steps at inference
+    prediction_type: Literal["epsilon", "sample"] = "epsilon"  # what the U-Net predicts: the noise or x_0
+    num_inference_steps: int = Field(10, ge=1)  # DDIM steps at inference (at most num_train_timesteps)
+
+    @model_validator(mode="after")
+    def _check(self) -> NoiseConfig:
+        if self.num_inference_steps > self.num_train_timesteps:
+            raise ValueError(
+                f"num_inference_steps {self.num_inference_steps} is more than num_train_timesteps "
+                f"{self.num_train_timesteps}: DDIM steps are a subset of the training steps"
+            )
+        return self
 
 
 class ModelConfig(Frozen):
-    obs_horizon: int = 2  # To: observation frames the policy conditions on
-    pred_horizon: int = 16  # Tp: actions predicted per chunk
-    n_action_steps: int = 8  # actions executed per chunk, starting at the current obs step (To - 1)
-    action_dim: int = 7  # dp (3), drot (3), gripper (1)
-    state_dim: int = 0  # proprioceptive state per frame (0 = images only)
-    image_size: tuple[int, int] = (84, 84)  # (H, W) of the frames the dataset provides
+    obs_horizon: int = Field(2, ge=1)  # To: observation frames the policy conditions on
+    pred_horizon: int = Field(16, ge=1)  # Tp: actions predicted per chunk
+    n_action_steps: int = Field(8, ge=1)  # actions executed per chunk, starting at the current obs step (To - 1)
+    action_dim: int = Field(7, ge=1)  # dp (3), drot (3), gripper (1)
+    state_dim: int = Field(0, ge=0)  # proprioceptive state per frame (0 = images only)
+    image_size: tuple[PositiveInt, PositiveInt] = (84, 84)  # (H, W) of the frames the dataset provides
     encoder: EncoderConfig = Field(default_factory=EncoderConfig)  # image backbone
-    down_dims: tuple[int, ...] = (512, 1024, 2048)  # U-Net channels per level (diffusion_policy image default)
-    diffusion_step_embed_dim: int = 128  # sinusoidal step embedding width
-    kernel_size: int = 5  # U-Net conv kernel
-    n_groups: int = 8  # U-Net GroupNorm groups
+    # U-Net channels per level (diffusion_policy image default)
+    down_dims: tuple[PositiveInt, ...] = Field((512, 1024, 2048), min_length=1)
+    diffusion_step_embed_dim: int = Field(128, ge=4, multiple_of=2)  # sinusoidal step embedding width (even)
+    kernel_size: int = Field(5, ge=1)  # U-Net conv kernel (odd: the convolutions keep the chunk's length)
+    n_groups: int = Field(8, ge=1)  # U-Net GroupNorm groups
     noise: NoiseConfig = Field(default_factory=NoiseConfig)  # schedulers
 
     @model_validator(mode="after")
     def _check(self) -> ModelConfig:
+        if self.kernel_size % 2 == 0:
+            raise ValueError(f"kernel_size {self.kernel_size} must be odd, so the U-Net keeps the chunk's length")
         factor = 2 ** (len(self.down_dims) - 1)
         if self.pred_horizon % factor:
             raise ValueError(
