@@ -344,7 +344,8 @@ def load_policy(
 
     ``expect``: fail with the differing fields if the checkpoint's model config is not this one.
     ``fast_paths``: compute the U-Net's Conv1d layers as GEMMs where that was measured faster
-    (the CPU; ``services.policy.model.fastpath``); the same maths either way.
+    (the CPU, for passes of two or more views; one view's pass keeps PyTorch's convolution:
+    ``services.policy.model.fastpath``, ``bench/denoise_step.py``); the same maths either way.
     """
     from services.policy.model.fastpath import gemm_conv1d_pays_off, use_gemm_conv1d
     from services.policy.model.policy import DiffusionPolicy, ModelConfig

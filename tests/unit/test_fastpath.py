@@ -58,6 +58,33 @@ def test_gemm_conv1d_matches_conv1d_outputs_and_gradients(c_in, c_out, k, stride
     assert fast.state_dict().keys() == plain.state_dict().keys()
 
 
+GEMM = "_GemmConv1dFunction"  # the profiler's name for the autograd function
+
+
+def _ops(fn) -> set[str]:
+    """The operators and autograd functions ``fn`` runs (the profiler's record of them)."""
+    with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU]) as prof:
+        fn()
+    return {e.key for e in prof.key_averages()}
+
+
+def test_a_batch_of_one_without_gradients_takes_pytorchs_convolution_and_the_rest_the_gemm():
+    """(one view's denoising step: PyTorch's convolution was measured faster there, bench/denoise_step.py)"""
+    torch.manual_seed(2)
+    plain = nn.Conv1d(64, 128, 5, padding=2)
+    fast = copy.deepcopy(plain)
+    use_gemm_conv1d(fast)
+    one, six = torch.randn(1, 64, 16), torch.randn(6, 64, 16)
+    with torch.no_grad():
+        ops = _ops(lambda: fast(one))
+        assert "aten::convolution" in ops and GEMM not in ops and torch.equal(fast(one), plain(one))
+        ops = _ops(lambda: fast(six))
+        assert GEMM in ops and "aten::convolution" not in ops
+        close(fast(six), plain(six))
+    ops = _ops(lambda: fast(one))  # with gradients (training): the GEMM, and its backward
+    assert GEMM in ops and "aten::convolution" not in ops
+
+
 def test_the_unet_with_gemm_convs_is_the_same_function_with_the_same_gradients():
     torch.manual_seed(1)
     plain = ConditionalUnet1D(input_dim=7, global_cond_dim=40, down_dims=(32, 64, 128), diffusion_step_embed_dim=16)

@@ -68,9 +68,14 @@ class _GemmConv1dFunction(torch.autograd.Function):
 
 
 class GemmConv1d(nn.Conv1d):
-    """An ``nn.Conv1d`` computed by ``_GemmConv1dFunction``; same parameters, same state dict."""
+    """An ``nn.Conv1d`` computed by ``_GemmConv1dFunction``; same parameters, same state dict.
+
+    A batch of one without gradients (one view's denoising step) goes to PyTorch's own convolution,
+    which was measured faster there and slower from two up (``bench/denoise_step.py``)."""
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if x.shape[0] == 1 and not torch.is_grad_enabled():
+            return super().forward(x)
         return _GemmConv1dFunction.apply(x, self.weight, self.bias, self.stride[0], self.padding[0])
 
 
