@@ -10,6 +10,7 @@ from torch import nn
 
 from services.policy.model.fastpath import (
     GemmConv1d,
+    cast_matmul_weights,
     ema_update,
     make_optimizer,
     use_gemm_conv1d,
@@ -69,7 +70,8 @@ def _ops(fn) -> set[str]:
 
 
 def test_a_batch_of_one_without_gradients_takes_pytorchs_convolution_and_the_rest_the_gemm():
-    """(one view's denoising step: PyTorch's convolution was measured faster there, bench/denoise_step.py)"""
+    """(one view's float32 denoising step: PyTorch's convolution was measured faster there, and the
+    GEMM in bfloat16, bench/denoise_step.py)"""
     torch.manual_seed(2)
     plain = nn.Conv1d(64, 128, 5, padding=2)
     fast = copy.deepcopy(plain)
@@ -83,6 +85,12 @@ def test_a_batch_of_one_without_gradients_takes_pytorchs_convolution_and_the_res
         close(fast(six), plain(six))
     ops = _ops(lambda: fast(one))  # with gradients (training): the GEMM, and its backward
     assert GEMM in ops and "aten::convolution" not in ops
+    with torch.no_grad(), torch.autocast("cpu", dtype=torch.bfloat16):  # a bf16 server's pass
+        ops = _ops(lambda: fast(one))
+        assert GEMM in ops and "aten::convolution" not in ops
+        cast_matmul_weights(fast, torch.bfloat16)
+        ops = _ops(lambda: fast(one))
+        assert GEMM in ops and "aten::convolution" not in ops
 
 
 def test_the_unet_with_gemm_convs_is_the_same_function_with_the_same_gradients():

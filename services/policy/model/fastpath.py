@@ -70,11 +70,17 @@ class _GemmConv1dFunction(torch.autograd.Function):
 class GemmConv1d(nn.Conv1d):
     """An ``nn.Conv1d`` computed by ``_GemmConv1dFunction``; same parameters, same state dict.
 
-    A batch of one without gradients (one view's denoising step) goes to PyTorch's own convolution,
-    which was measured faster there and slower from two up (``bench/denoise_step.py``)."""
+    A float32 batch of one without gradients (one view's denoising step) goes to PyTorch's own
+    convolution, measured faster there and slower from two up; in bfloat16 (weights cast, under
+    autocast) the GEMM was faster at every batch size (``bench/denoise_step.py``)."""
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        if x.shape[0] == 1 and not torch.is_grad_enabled():
+        if (
+            x.shape[0] == 1
+            and not torch.is_grad_enabled()
+            and self.weight.dtype == torch.float32
+            and not torch.is_autocast_enabled(x.device.type)
+        ):
             return super().forward(x)
         return _GemmConv1dFunction.apply(x, self.weight, self.bias, self.stride[0], self.padding[0])
 
