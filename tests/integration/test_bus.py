@@ -43,7 +43,15 @@ def test_query_reply_and_errors(make_bus):
     def fail(_req):
         raise ValueError("nope")
 
+    def slow(_req):
+        time.sleep(1.0)
+        return b"late"
+
     server.queryable("svc/fail", fail)
+    server.queryable("svc/slow", slow)
+    # every queryable before the liveliness token, as a service declares them: a query sent right
+    # after a later declaration can reach the client's session before the declaration does (CI,
+    # 2026-12-07: 'nothing answers it' for svc/slow)
     server.announce("server")
     client.wait_alive({"server"}, timeout=10)
     assert client.query("svc/echo", b"hi") == b"echo:hi"
@@ -52,11 +60,6 @@ def test_query_reply_and_errors(make_bus):
     with pytest.raises(TimeoutError, match="nothing answers it \\(is the service running"):
         client.query("svc/none", b"", timeout=0.5)  # (at once: before, 'within 0.5s')
 
-    def slow(_req):
-        time.sleep(1.0)
-        return b"late"
-
-    server.queryable("svc/slow", slow)
     # a service there that answers too late: a TimeoutError saying so (before: zenoh's error reply
     # 'Timeout' as a RuntimeError, which the sessions did not catch: a traceback)
     with pytest.raises(TimeoutError, match="within 0.3s \\(the service is busy or stuck\\)"):
