@@ -28,6 +28,7 @@ from typing import Any
 
 import torch
 import torch.distributed as dist
+from safetensors import SafetensorError
 from torch.utils.data import DataLoader, Dataset, Sampler
 
 from services.core.config import ConfigError
@@ -515,7 +516,11 @@ def _train(
             )
 
     torch.manual_seed(cfg.seed)  # same initial weights on every rank
-    policy = DiffusionPolicy(model_cfg).to(device)
+    try:
+        policy = DiffusionPolicy(model_cfg)
+    except (OSError, ValueError, SafetensorError) as exc:  # ViT weights missing or unreadable, LoRA targets it lacks
+        raise TrainingError(f"the model cannot be built: {exc}") from None
+    policy = policy.to(device)
     use_amp = cfg.amp == "bf16" or (cfg.amp == "auto" and device.type == "cuda" and torch.cuda.is_bf16_supported())
     if cfg.amp == "bf16" and device.type != "cuda":
         log.warning("amp=bf16 on %s: autocast on the CPU is slower than float32 here; using it as asked", device)

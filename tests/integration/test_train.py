@@ -568,6 +568,23 @@ def test_a_model_setting_out_of_range_is_one_line_before_anything_is_made(sim_da
     assert not (tmp_path / "runs").exists()
 
 
+def test_a_model_that_cannot_be_built_is_one_line_before_anything_is_made(sim_dataset, tmp_path, capsys):
+    """(ViT weights not there, or LoRA targets the ViT lacks: a FileNotFoundError's or peft's traceback)"""
+    missing = tmp_path / "nope.safetensors"
+    vit = ["model.encoder.kind=dinov3", *(f"model.encoder.vit_config.{k}={v}" for k, v in TINY_VIT.items())]
+    for extra, says in [
+        (f"model.encoder.vit_weights={missing}", f"the model cannot be built: ViT weights {missing} do not exist"),
+        ("model.encoder.lora_targets=[nope]", "the model cannot be built: Target modules {'nope'} not found"),
+    ]:
+        args = ["--out", str(tmp_path / "runs" / "run"), "--steps", "1", "--workers", "0"]
+        for setting in [*vit, extra]:
+            args += ["--set", setting]
+        rc = viewscale(["train", "--data", str(sim_dataset), *args])
+        err = capsys.readouterr().err.strip()
+        assert rc == 2 and err.startswith(f"error: {says}") and len(err.splitlines()) == 1, err
+        assert not (tmp_path / "runs").exists()
+
+
 def _cut_short(path: Path) -> None:
     with path.open("r+b") as f:
         f.truncate(path.stat().st_size // 2)

@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import pytest
 import torch
+from pydantic import ValidationError
 from safetensors.torch import save_file
 from tiny_models import TINY_VIT
 from torch import nn
@@ -128,6 +130,19 @@ def test_dinov3_loads_local_weights_and_trains_only_lora(tmp_path):
     assert out.shape == (2, 16)
     out.sum().backward()
     assert enc.vit.model.layer[0].attention.q_proj.lora_B.default.weight.grad is not None
+
+
+@pytest.mark.parametrize(
+    ("change", "says"),
+    [  # transformers took both: the typo as an attribute nobody reads, the heads as a view error at the first pass
+        ({"hiden_size": 64}, "vit_config: 'hiden_size' is not a DINOv3ViTConfig field (its fields include hidden_size"),
+        ({"num_attention_heads": 5}, "vit_config: hidden_size 32 must be a positive multiple of num_attention_heads 5"),
+    ],
+)
+def test_a_vit_config_transformers_would_misread_is_refused_naming_the_field(change, says):
+    with pytest.raises(ValidationError, match=re.escape(says)):
+        EncoderConfig(kind="dinov3", vit_config={**TINY_VIT, **change})
+    assert EncoderConfig(kind="resnet18", vit_config={**TINY_VIT, **change}).kind == "resnet18"  # unused there
 
 
 def test_dinov3_with_weights_of_another_shape_is_a_clear_error(tmp_path):

@@ -16,6 +16,7 @@ crop in eval, so the model at inference sees the same scale it trained on.
 
 from __future__ import annotations
 
+import functools
 import json
 from pathlib import Path
 from typing import Any, Literal
@@ -67,6 +68,20 @@ class EncoderConfig(Frozen):
 
     @model_validator(mode="after")
     def _check(self) -> EncoderConfig:
+        if self.kind == "dinov3":
+            unknown = sorted(set(self.vit_config) - vit_config_fields())
+            if unknown:  # (transformers keeps any keyword as an attribute: a typo was a silent default)
+                raise ValueError(
+                    f"vit_config: {', '.join(map(repr, unknown))} is not a DINOv3ViTConfig field "
+                    f"(its fields include {', '.join(sorted(DINOV3_BASE))})"
+                )
+            width = self.vit_config.get("hidden_size", DINOV3_BASE["hidden_size"])
+            heads = self.vit_config.get("num_attention_heads", DINOV3_BASE["num_attention_heads"])
+            ints = isinstance(width, int) and isinstance(heads, int)
+            if not (ints and width > 0 and heads > 0 and width % heads == 0):
+                raise ValueError(
+                    f"vit_config: hidden_size {width} must be a positive multiple of num_attention_heads {heads}"
+                )
         if self.kind == "dinov3" and self.crop is not None:
             patch = self.patch_size
             if self.crop[0] % patch or self.crop[1] % patch:
@@ -250,6 +265,14 @@ def build_encoder(cfg: EncoderConfig, image_size: tuple[int, int], load_pretrain
     if cfg.kind == "resnet18":
         return ResNet18Encoder(cfg, crop)
     return DinoV3Encoder(cfg, crop, load_pretrained=load_pretrained)
+
+
+@functools.cache
+def vit_config_fields() -> frozenset[str]:
+    """The names transformers' DINOv3ViTConfig knows (its own and every model config's)."""
+    from transformers import DINOv3ViTConfig
+
+    return frozenset(DINOv3ViTConfig().to_dict())
 
 
 def vit_config_from_dir(path: str | Path) -> dict[str, Any]:
