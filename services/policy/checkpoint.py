@@ -232,11 +232,34 @@ def model_id(path: str | Path) -> str:
 
 
 def read_info(path: str | Path) -> dict[str, Any]:
+    """The checkpoint's ``policy.json``; a CheckpointError naming the file when it cannot be read.
+    (No torch here: the evaluation process reads it too.)"""
     path = resolve_checkpoint(path)
-    info = json.loads((path / POLICY_FILE).read_text())
-    if info.get("format") != FORMAT or info.get("version") != VERSION:
+    file = path / POLICY_FILE
+    try:
+        info = json.loads(file.read_text())
+    except (OSError, ValueError) as exc:
+        raise _unreadable(file, exc) from None
+    if not isinstance(info, dict) or info.get("format") != FORMAT or info.get("version") != VERSION:
         raise CheckpointError(f"{path} is not a {FORMAT} v{VERSION} checkpoint")
     return info
+
+
+def model_config(info: dict[str, Any], path: str | Path) -> ModelConfig:
+    """The model config of a checkpoint's ``info`` (``read_info``); a CheckpointError naming the
+    checkpoint when this version cannot build it (before: pydantic's traceback)."""
+    from pydantic import ValidationError
+
+    from services.core.config import describe_errors
+    from services.policy.model.policy import ModelConfig
+
+    try:
+        return ModelConfig.model_validate(info.get("model"))
+    except ValidationError as exc:
+        raise CheckpointError(
+            f"{Path(path) / POLICY_FILE} holds a model config this version cannot build "
+            f"({describe_errors(exc, ModelConfig)}): was it edited, or written by another version?"
+        ) from None
 
 
 def read_weights(file: str | Path) -> dict[str, torch.Tensor]:
@@ -348,12 +371,12 @@ def load_policy(
     ``services.policy.model.fastpath``, ``bench/denoise_step.py``); the same maths either way.
     """
     from services.policy.model.fastpath import gemm_conv1d_pays_off, use_gemm_conv1d
-    from services.policy.model.policy import DiffusionPolicy, ModelConfig
+    from services.policy.model.policy import DiffusionPolicy
 
     device = inference_device(device)  # before any weight is read
     path = resolve_checkpoint(path)
     info = read_info(path)
-    cfg = ModelConfig.model_validate(info["model"])
+    cfg = model_config(info, path)
     if expect is not None:
         diff = config_diff(expect, cfg)
         if diff:

@@ -190,13 +190,19 @@ def _worker(args: argparse.Namespace) -> int:
     if why := _unbindable(cfg.listen):
         return _error(why, 1)
     from services.core.runtime import OutputError, reading
-    from services.policy.checkpoint import CheckpointError, inference_device, read_info, resolve_checkpoint
+    from services.policy.checkpoint import (
+        CheckpointError,
+        inference_device,
+        model_config,
+        read_info,
+        resolve_checkpoint,
+    )
     from services.policy.transport import ListenError
     from services.policy.worker import serve_worker
 
     try:
         cfg = cfg.model_copy(update={"checkpoint": str(resolve_checkpoint(cfg.checkpoint))})  # (as serve's)
-        read_info(cfg.checkpoint)
+        model_config(read_info(cfg.checkpoint), cfg.checkpoint)
         inference_device(cfg.device, cfg.precision)  # before it listens: a one-line error, not a traceback
     except (CheckpointError, ValueError, OSError) as exc:
         return _error(exc)

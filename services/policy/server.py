@@ -62,7 +62,7 @@ from services.policy.aggregation import (
     to_view,
     view_transform,
 )
-from services.policy.checkpoint import checkpoint_sha256, model_id, read_info
+from services.policy.checkpoint import checkpoint_sha256, model_config, model_id, read_info
 from services.policy.config import MAX_REACH_M, PLACEMENTS, open_to_others
 from services.policy.model.diffusion import make_inference_scheduler
 from services.policy.model.policy import NoiseConfig
@@ -1133,6 +1133,7 @@ def load_spec(cfg) -> tuple[PolicySpec, NoiseConfig, dict[str, Any]]:
     and take the place of the checkpoint's of the same name (a camera recalibrated since training
     is served where it is now; each that differs is logged)."""
     info = read_info(cfg.checkpoint)
+    noise = model_config(info, cfg.checkpoint).noise  # (a config this version cannot build: one line)
     sha = checkpoint_sha256(cfg.checkpoint)
     extra = {}
     if cfg.rig:
@@ -1168,7 +1169,7 @@ def load_spec(cfg) -> tuple[PolicySpec, NoiseConfig, dict[str, Any]]:
         )
     transforms = {v: view_transform(spec.action_space, spec.cameras[v].R_ext) for v in spec.cameras}
     check_orthogonal(spec.normalizer, transforms)  # refuse a checkpoint whose views cannot be composed
-    return spec, NoiseConfig.model_validate(info["model"]["noise"]), info
+    return spec, noise, info
 
 
 async def serve_policy(cfg, stop: asyncio.Event, worker_addresses: list[str], announce=print) -> int:

@@ -496,7 +496,7 @@ def _train(
         raise ConfigError(f"{out} already has checkpoints ({latest.name}); resume=true continues it, or pick a new out")
     if latest is not None:
         info = ckpt.read_info(latest)
-        diff = ckpt.config_diff(ModelConfig.model_validate(info["model"]), model_cfg)
+        diff = ckpt.config_diff(ckpt.model_config(info, latest), model_cfg)
         if diff:
             raise ckpt.CheckpointError(
                 f"{latest} was trained with a different model config ({', '.join(diff)}); "

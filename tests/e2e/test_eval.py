@@ -5,6 +5,7 @@ scripted-expert row through the same path, and `viewscale rerender`."""
 from __future__ import annotations
 
 import json
+import shutil
 import signal
 import subprocess
 import sys
@@ -18,6 +19,7 @@ from services.camera.opencv import fourcc_text
 from services.core.tensors import decode_jpeg
 from services.dataset.build import BuildParams, build_dataset
 from services.dataset.store import DatasetStore
+from services.policy.checkpoint import resolve_checkpoint
 from services.recorder.reader import read_episode
 from services.session.config import EVAL_SEEDS
 
@@ -139,7 +141,11 @@ def test_eval_refuses_bad_input_with_one_line_before_starting_anything(tiny_chec
     ck = ["--checkpoint", str(tiny_checkpoint)]
     note = tmp_path / "note.txt"
     note.write_text("keep me\n")
+    garbled = tmp_path / "garbled"  # policy.json cut short: a JSON traceback before
+    shutil.copytree(resolve_checkpoint(tiny_checkpoint), garbled)
+    (garbled / "policy.json").write_text("{")
     cases = [
+        (["--checkpoint", str(garbled)], f"{garbled / 'policy.json'} cannot be read (Expecting property name"),
         ([*ck, "--task", "pour"], "unknown task 'pour'"),
         ([*ck, "--episodes", "0"], "--episodes must be at least 1, got 0"),
         ([*ck, "--views", "F,XX"], "--views: rig three15 has no camera XX; its cameras: F, FL, FR"),

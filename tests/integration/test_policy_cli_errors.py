@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from cli_process import user_env, viewscale
+from cli_process import user_env, viewscale, viewscale_each
 from policy_processes import start_server, start_worker, stop
 from polling import wait_for
 
@@ -127,6 +127,39 @@ def test_weights_cut_short_stop_the_process_with_one_error_line(cut_checkpoint, 
     # load the weights and were started again until worker_ready_s ran out, 120 s by default)
     if command[0] == "serve":
         assert "local worker" not in proc.stderr and "listening" not in proc.stdout, proc.stderr
+
+
+def _garble(policy_json: Path) -> None:
+    policy_json.write_text("{")  # a copy cut short
+
+
+def _edit_model(policy_json: Path) -> None:
+    info = json.loads(policy_json.read_text())
+    info["model"]["n_groups"] = 0  # edited by hand, or a version whose bounds differ
+    policy_json.write_text(json.dumps(info))
+
+
+@pytest.mark.parametrize(
+    ("damage", "says"),
+    [
+        (_garble, "policy.json cannot be read (Expecting property name"),
+        (Path.unlink, "policy.json cannot be read ([Errno 2] No such file or directory"),
+        (_edit_model, "policy.json holds a model config this version cannot build (n_groups: Input should be"),
+    ],
+)
+def test_a_damaged_policy_json_is_one_line_naming_it(tiny_checkpoint, tmp_path, damage, says):
+    """(before: the server's error said only the JSON parser's words, and a model config that this
+    version's bounds refuse was pydantic's traceback)"""
+    run = tmp_path / "run"
+    shutil.copytree(tiny_checkpoint, run)
+    [policy_json] = run.glob("checkpoints/*/policy.json")
+    damage(policy_json)
+    # the checkpoint folder itself (a run whose latest lacks its policy.json says the latest is incomplete)
+    listen = ["--checkpoint", str(policy_json.parent), "--listen", "127.0.0.1:0"]
+    for proc in viewscale_each([["worker", *listen], ["serve", "--workers", "1", *listen]]):
+        err = proc.stderr.strip()
+        assert proc.returncode == 2 and err.startswith(f"error: {policy_json.parent}/{says}"), err
+        assert len(err.splitlines()) == 1 and "local worker" not in err, err
 
 
 def test_local_workers_that_cannot_load_the_model_end_the_server_with_their_error(unfitting_checkpoint):
