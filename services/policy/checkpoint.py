@@ -246,8 +246,9 @@ def read_info(path: str | Path) -> dict[str, Any]:
 
 
 def model_config(info: dict[str, Any], path: str | Path) -> ModelConfig:
-    """The model config of a checkpoint's ``info`` (``read_info``); a CheckpointError naming the
-    checkpoint when this version cannot build it (before: pydantic's traceback)."""
+    """The model config of the ``info`` read from checkpoint or run ``path`` (``read_info``); a
+    CheckpointError naming its policy.json when this version cannot build it (before: pydantic's
+    traceback)."""
     from pydantic import ValidationError
 
     from services.core.config import describe_errors
@@ -257,7 +258,7 @@ def model_config(info: dict[str, Any], path: str | Path) -> ModelConfig:
         return ModelConfig.model_validate(info.get("model"))
     except ValidationError as exc:
         raise CheckpointError(
-            f"{Path(path) / POLICY_FILE} holds a model config this version cannot build "
+            f"{resolve_checkpoint(path) / POLICY_FILE} holds a model config this version cannot build "
             f"({describe_errors(exc, ModelConfig)}): was it edited, or written by another version?"
         ) from None
 
