@@ -145,6 +145,19 @@ def test_a_vit_config_transformers_would_misread_is_refused_naming_the_field(cha
     assert EncoderConfig(kind="resnet18", vit_config={**TINY_VIT, **change}).kind == "resnet18"  # unused there
 
 
+def test_a_vit_config_field_left_out_is_checked_at_transformers_default():
+    """(hidden_size left out is DINOv3ViTConfig's 384 in the model, which 256 heads do not divide)"""
+    vit = {k: v for k, v in TINY_VIT.items() if k != "hidden_size"}
+    with pytest.raises(
+        ValidationError, match=re.escape("hidden_size 384 must be a positive multiple of num_attention_heads 256")
+    ):
+        EncoderConfig(kind="dinov3", vit_config={**vit, "num_attention_heads": 256})
+    assert (
+        EncoderConfig(kind="dinov3", vit_config={**vit, "num_attention_heads": 6}).vit_config["num_attention_heads"]
+        == 6
+    )
+
+
 def test_dinov3_with_weights_of_another_shape_is_a_clear_error(tmp_path):
     path, _ = _tiny_vit_file(tmp_path)
     other = {**TINY_VIT, "hidden_size": 64, "intermediate_size": 128}

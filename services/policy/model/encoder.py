@@ -68,21 +68,23 @@ class EncoderConfig(Frozen):
 
     @model_validator(mode="after")
     def _check(self) -> EncoderConfig:
-        if self.kind == "dinov3":
-            unknown = sorted(set(self.vit_config) - vit_config_fields())
-            if unknown:  # (transformers keeps any keyword as an attribute: a typo was a silent default)
-                raise ValueError(
-                    f"vit_config: {', '.join(map(repr, unknown))} is not a DINOv3ViTConfig field "
-                    f"(its fields include {', '.join(sorted(DINOV3_BASE))})"
-                )
-            width = self.vit_config.get("hidden_size", DINOV3_BASE["hidden_size"])
-            heads = self.vit_config.get("num_attention_heads", DINOV3_BASE["num_attention_heads"])
-            ints = isinstance(width, int) and isinstance(heads, int)
-            if not (ints and width > 0 and heads > 0 and width % heads == 0):
-                raise ValueError(
-                    f"vit_config: hidden_size {width} must be a positive multiple of num_attention_heads {heads}"
-                )
-        if self.kind == "dinov3" and self.crop is not None:
+        if self.kind != "dinov3":
+            return self
+        defaults = vit_config_defaults()
+        unknown = sorted(set(self.vit_config) - set(defaults))
+        if unknown:  # (transformers keeps any keyword as an attribute: a typo was a silent default)
+            raise ValueError(
+                f"vit_config: {', '.join(map(repr, unknown))} is not a DINOv3ViTConfig field "
+                f"(its fields include {', '.join(sorted(DINOV3_BASE))})"
+            )
+        # a key left out takes DINOv3ViTConfig's default, as the model built from it does
+        width, heads = ({**defaults, **self.vit_config}[k] for k in ("hidden_size", "num_attention_heads"))
+        ints = isinstance(width, int) and isinstance(heads, int)
+        if not (ints and width > 0 and heads > 0 and width % heads == 0):
+            raise ValueError(
+                f"vit_config: hidden_size {width} must be a positive multiple of num_attention_heads {heads}"
+            )
+        if self.crop is not None:
             patch = self.patch_size
             if self.crop[0] % patch or self.crop[1] % patch:
                 raise ValueError(f"crop {self.crop} must be a multiple of the ViT patch size {patch}")
@@ -268,11 +270,12 @@ def build_encoder(cfg: EncoderConfig, image_size: tuple[int, int], load_pretrain
 
 
 @functools.cache
-def vit_config_fields() -> frozenset[str]:
-    """The names transformers' DINOv3ViTConfig knows (its own and every model config's)."""
+def vit_config_defaults() -> dict[str, Any]:
+    """transformers' DINOv3ViTConfig as it fills every field it knows (its own and every model
+    config's) when given none: the names ``vit_config`` may use, and what a name left out becomes."""
     from transformers import DINOv3ViTConfig
 
-    return frozenset(DINOv3ViTConfig().to_dict())
+    return DINOv3ViTConfig().to_dict()
 
 
 def vit_config_from_dir(path: str | Path) -> dict[str, Any]:
