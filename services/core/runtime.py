@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import _thread
 import contextlib
 import ctypes
 import fcntl
@@ -12,7 +13,7 @@ import signal
 import socket
 import sys
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import IO
 
@@ -61,12 +62,32 @@ def signalled_while_starting() -> str | None:
     return _SIGNALLED_WHILE_STARTING[0] if _SIGNALLED_WHILE_STARTING else None
 
 
+def set_from_signal_handler(event: threading.Event, first: Callable[[], None] | None = None) -> None:
+    """Call ``first`` and set ``event`` on a new thread: what a signal handler must do instead
+    of ``event.set()``. Python runs a handler in the main thread between two bytecodes of whatever
+    that thread was doing, possibly inside ``event.wait()`` while it holds the event's lock, which
+    is not reentrant: ``event.set()`` there waits for that lock forever. A process signalled more
+    than once is likely to get there sooner or later (a service gets its parent-death SIGTERM once
+    for each of its dead parent's threads). Nothing the handler's thread may hold is taken here:
+    ``_thread`` starts the thread without the ``threading`` module's locks."""
+
+    def work() -> None:
+        try:
+            if first is not None:
+                first()
+        finally:
+            event.set()
+
+    _thread.start_new_thread(work, ())
+
+
 def stop_on_signals(stop: threading.Event) -> None:
     """SIGTERM, SIGINT and SIGHUP (a closed terminal) set ``stop`` so the service closes its files cleanly."""
 
     def handler(signum, _frame):
-        logging.getLogger("runtime").info("received %s, stopping", signal.Signals(signum).name)
-        stop.set()
+        name = signal.Signals(signum).name  # (the log line is written on the other thread too: the
+        # handler may have come in the middle of a log line, and a buffered stream is not reentrant)
+        set_from_signal_handler(stop, lambda: logging.getLogger("runtime").info("received %s, stopping", name))
 
     signal.signal(signal.SIGTERM, handler)
     signal.signal(signal.SIGINT, handler)

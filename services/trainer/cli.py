@@ -30,19 +30,19 @@ def _stop_on_signals(stop: threading.Event, announce: bool):
     """The first SIGINT, SIGTERM or SIGHUP sets ``stop``: training ends after the step in progress and
     saves a checkpoint there. A second one interrupts at once (back to the latest checkpoint). Only
     in the main thread, where Python handles signals; the previous handlers come back after."""
-    from services.core.runtime import signalled_while_starting
+    from services.core.runtime import set_from_signal_handler, signalled_while_starting
 
     if threading.current_thread() is not threading.main_thread():
         yield
         return
 
     def on_signal(signum, _frame):
+        name = signal.Signals(signum).name
         if stop.is_set():
-            raise KeyboardInterrupt(signal.Signals(signum).name)
-        stop.set()
+            raise KeyboardInterrupt(name)
         if announce:  # os.write: the progress bar may be writing to stderr at this moment
-            name = signal.Signals(signum).name
             os.write(2, f"\n{name}: stopping after this step, saving a checkpoint (again to stop at once)\n".encode())
+        set_from_signal_handler(stop)  # (never stop.set() here: see there)
 
     signals = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
     before = {sig: signal.signal(sig, on_signal) for sig in signals}

@@ -252,6 +252,16 @@ def _start_collect(tmp_path):
     return proc, children
 
 
+def _log_tails(tmp_path, procs) -> str:
+    """The last lines of each of ``procs``' service logs: what a failure needs to be understood."""
+    out = []
+    for p in procs:
+        name = p.cmdline()[2].removeprefix("services.")
+        log = tmp_path / "logs" / f"{name}.log"
+        out.append(f"--- {log}:\n" + ("\n".join(log.read_text().splitlines()[-15:]) if log.exists() else "(none)"))
+    return "\n".join(out)
+
+
 def test_killing_collect_with_sigkill_takes_every_service_with_it_and_closes_the_episode(tmp_path):
     import psutil
 
@@ -260,7 +270,7 @@ def test_killing_collect_with_sigkill_takes_every_service_with_it_and_closes_the
     proc.kill()  # kill -9: no handler runs in the parent
     proc.wait(timeout=30)
     gone, alive = psutil.wait_procs(children, timeout=30)
-    assert not alive, f"services left running: {[c.cmdline() for c in alive]}"
+    assert not alive, f"services left running: {[c.cmdline() for c in alive]}\n{_log_tails(tmp_path, alive)}"
     assert not list(tmp_path.glob("*.part")), "an episode was left unclosed"  # the recorder closed it on SIGTERM
     cut = [read_episode(f) for f in tmp_path.glob("*.mcap") if not read_episode(f).metadata["success"]]
     assert len(cut) == 1 and any(f.startswith("interrupted") for f in cut[0].flags)

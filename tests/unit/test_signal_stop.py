@@ -1,0 +1,57 @@
+"""A stop signal sets the service's stop event wherever the main thread was.
+
+Python runs a signal handler in the main thread between two bytecodes of whatever it was doing.
+When that is inside ``stop.wait(...)``, the thread holds the event's lock, and a handler calling
+``stop.set()`` there waited for that lock forever: the service never stopped. It happened in a
+fresh-clone run of the collect test: a service gets its parent-death SIGTERM once for each of its
+dead parent's threads, and the recorder, still running 30 s after its session was killed with
+SIGKILL, was one of them. The child below puts the handler exactly there: it holds the event's
+lock (``Event._cond``, CPython's own, as ``Event.wait`` does) while the signal comes in.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+
+CHILD = textwrap.dedent(
+    """
+    import contextlib, logging, os, signal, sys, threading
+    from services.core.runtime import stop_on_signals
+    from services.trainer.cli import _stop_on_signals
+
+    logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(name)s: %(message)s")
+    stop = threading.Event()
+    if sys.argv[1] == "service":
+        stop_on_signals(stop)
+        scope = contextlib.nullcontext()
+    else:
+        scope = _stop_on_signals(stop, announce=True)
+    with scope:
+        with stop._cond:  # where the main thread is inside stop.wait()
+            os.kill(os.getpid(), signal.SIGTERM)
+            for _ in range(1000):  # the handler runs at one of these bytecodes, the lock held
+                pass
+        print("stopped" if stop.wait(10) else "not stopped", flush=True)
+    """
+)
+
+
+@pytest.mark.parametrize("handler", ["service", "training"])
+def test_a_signal_that_comes_while_the_main_thread_holds_the_stop_events_lock_still_stops(handler):
+    try:
+        proc = subprocess.run(
+            [sys.executable, "-c", CHILD, handler], cwd=ROOT, capture_output=True, text=True, timeout=30
+        )
+    except subprocess.TimeoutExpired:
+        pytest.fail(f"the {handler} process hung in its signal handler: SIGTERM never set its stop event")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert proc.stdout.strip() == "stopped", proc.stdout + proc.stderr[-3000:]
+    said = "runtime: received SIGTERM, stopping" if handler == "service" else "SIGTERM: stopping after this step"
+    assert said in proc.stderr and "Traceback" not in proc.stderr, proc.stderr[-3000:]
