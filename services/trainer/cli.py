@@ -36,10 +36,13 @@ def _stop_on_signals(stop: threading.Event, announce: bool):
         yield
         return
 
+    seen: list[str] = []  # (the event is set a moment later, on another thread: a second signal at once is second)
+
     def on_signal(signum, _frame):
         name = signal.Signals(signum).name
-        if stop.is_set():
+        if seen or stop.is_set():
             raise KeyboardInterrupt(name)
+        seen.append(name)
         if announce:  # os.write: the progress bar may be writing to stderr at this moment
             os.write(2, f"\n{name}: stopping after this step, saving a checkpoint (again to stop at once)\n".encode())
         set_from_signal_handler(stop)  # (never stop.set() here: see there)

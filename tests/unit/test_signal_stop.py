@@ -55,3 +55,28 @@ def test_a_signal_that_comes_while_the_main_thread_holds_the_stop_events_lock_st
     assert proc.stdout.strip() == "stopped", proc.stdout + proc.stderr[-3000:]
     said = "runtime: received SIGTERM, stopping" if handler == "service" else "SIGTERM: stopping after this step"
     assert said in proc.stderr and "Traceback" not in proc.stderr, proc.stderr[-3000:]
+
+
+def test_a_second_signal_right_after_the_first_interrupts_training_at_once():
+    """Training's first signal stops after the step, a second one at once: also when the second comes
+    before the first one's thread has set the event."""
+    child = textwrap.dedent(
+        """
+        import os, signal, threading
+        from services.trainer.cli import _stop_on_signals
+
+        stop = threading.Event()
+        try:
+            with _stop_on_signals(stop, announce=True):
+                os.kill(os.getpid(), signal.SIGTERM)
+                os.kill(os.getpid(), signal.SIGTERM)
+                for _ in range(1000):
+                    pass
+            print("not interrupted", flush=True)
+        except KeyboardInterrupt as exc:
+            print("interrupted by", exc, flush=True)
+        """
+    )
+    proc = subprocess.run([sys.executable, "-c", child], cwd=ROOT, capture_output=True, text=True, timeout=30)
+    assert proc.stdout.strip() == "interrupted by SIGTERM", proc.stdout + proc.stderr[-3000:]
+    assert proc.stderr.count("SIGTERM: stopping after this step") == 1, proc.stderr
