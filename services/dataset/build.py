@@ -492,6 +492,42 @@ def _calibrations_hold(out: Path, old: dict[str, Any], params: BuildParams) -> b
     return True
 
 
+def _tree_bytes(path: Path) -> int:
+    return sum(f.stat().st_size for f in path.rglob("*") if f.is_file()) if path.is_dir() else 0
+
+
+def _check_space(out: Path, todo: list[Path], metas: dict[Path, dict[str, Any]], params: BuildParams) -> None:
+    """DatasetError, before anything is decoded or removed, when the episodes to build cannot fit
+    on ``out``'s disk: their frames are stored raw (uint8, at the image size, once per view). What
+    the build frees as it goes counts as free: the leftovers of a build that was cut short, and the
+    earlier build's folders of the episodes built again. (Before, a full disk was found by the
+    episode that filled it, minutes or hours in: ``No space left on device``, with no word of how
+    much the build needs.) An episode whose metadata cannot be read counts as nothing here."""
+    w, h = params.image_size
+    per_view = w * h * 3 + 4 * (len(STATE_NAMES) + ACTION_DIM) + 16  # a tick's frame, state, action, tick, stamp
+    per_tick = len(params.views) * per_view
+    ticks = sum(int(metas.get(src, {}).get("ticks") or 0) for src in todo)
+    need = ticks * per_tick
+    if need == 0:
+        return
+    free = shutil.disk_usage(next(p for p in (out, *out.parents) if p.exists())).free
+    if need <= free:  # (most builds: nothing else to look at)
+        return
+    episodes = out / EPISODES
+    freed = sum(_tree_bytes(p) for p in episodes.glob(".tmp-*")) + sum(_tree_bytes(episodes / s.stem) for s in todo)
+    if need > free + freed:
+        raise DatasetError(
+            f"the {len(todo)} episodes to build need about {_gib(need)} in {out} ({ticks} ticks, "
+            f"{len(params.views)} views of {w}x{h} frames stored raw), and {_gib(free + freed)} is free "
+            f"there{' with what the build replaces' if freed else ''}: free some space, write the dataset "
+            "on another disk (--out), or build fewer views or a smaller --image-size"
+        )
+
+
+def _gib(n: int) -> str:
+    return f"{n / 2**30:.1f} GiB" if n >= 2**30 else f"{n / 2**20:.1f} MiB"
+
+
 def _start_rebuild(out: Path) -> None:
     """From here on the directory is not a complete dataset until the new manifest lands."""
     (out / EPISODES).mkdir(parents=True, exist_ok=True)
@@ -765,8 +801,9 @@ def build_dataset(
         progress(f"{out} is up to date ({len(sources)} episodes unchanged)")
         return BuildResult(out, True, reused=len(sources), seconds=time.perf_counter() - t0, summary=summary)
 
-    _start_rebuild(out)
     reuse = _reusable(out, sources, hashes, params.array_key(), force)
+    _check_space(out, [s for s in sources if s not in reuse], metas, params)
+    _start_rebuild(out)
     t_eps = time.perf_counter()
     got = _build_episodes(out, sources, hashes, reuse, params, jobs, skip_bad, progress)
     episode_seconds = time.perf_counter() - t_eps

@@ -477,6 +477,27 @@ def test_an_unwritable_out_is_one_error_line(raw_dir, tmp_path, capsys):
     assert rc == 2 and err.strip() == f"error: --out {blocker / 'ds'}: not a directory ({blocker} is a file)"
 
 
+def test_a_build_that_cannot_fit_on_the_disk_is_one_line_before_anything_is_decoded_or_removed(
+    raw_dir, tmp_path, capsys
+):
+    """Frames are stored raw, once per view: at 100000x100000 the three episodes need petabytes.
+    Before, the build decoded until an array could not be made or the disk was full."""
+    out = tmp_path / "ds"
+    build = ["dataset", "build", "--raw", str(raw_dir), "--views", "F,FL,FR", "--out", str(out)]
+    assert viewscale([*build, "--image-size", "32x24"]) == 0
+    capsys.readouterr()
+    manifest = (out / "manifest.json").read_bytes()
+    rc = viewscale([*build, "--image-size", "100000"])
+    err = capsys.readouterr().err
+    assert rc == 2 and err.count("\n") == 1, err
+    assert err.startswith("error: the 3 episodes to build need about "), err
+    assert f"GiB in {out} ({3 * N} ticks, 3 views of 100000x100000 frames stored raw), and " in err, err
+    assert "free some space, write the dataset on another disk (--out)" in err, err
+    # the dataset built before is untouched: still complete, still loadable
+    assert (out / "manifest.json").read_bytes() == manifest and not list((out / "episodes").glob(".tmp-*"))
+    assert len(DatasetStore(out).episode_ids) == 3
+
+
 def test_a_wrong_raw_or_a_file_for_a_dataset_is_one_line_and_leaves_nothing(tmp_path, capsys):
     """A --raw with no episodes used to leave an empty --out folder behind (made before --raw was
     looked at); `dataset info` on a file said it did not exist."""
