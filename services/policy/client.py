@@ -29,7 +29,7 @@ from services.core.robot_types import kept_gripper
 from services.core.tensors import encode_jpeg, to_tensor
 from services.pb import policy_pb2, policy_pb2_grpc
 from services.policy import POLICY_PROTO_VERSION
-from services.policy.transport import bad_port, keepalive_channel_options, message_size_options
+from services.policy.transport import bad_target, keepalive_channel_options, message_size_options
 
 Image = bytes | np.ndarray  # JPEG bytes, or (H, W, 3) uint8 RGB
 
@@ -114,7 +114,7 @@ class PolicyClient:
         max_message_mb: int = 16,
         keepalive_s: float = 5.0,
     ):
-        if why := bad_port(address):
+        if why := bad_target(address):
             raise PolicyError(f"{address}: {why}", grpc.StatusCode.INVALID_ARGUMENT)
         for name, value in (("timeout_s", timeout_s), ("connect_timeout_s", connect_timeout_s)):
             if not value > 0:

@@ -8,7 +8,7 @@ from typing import Annotated, Literal, get_args
 from pydantic import AfterValidator, BeforeValidator, Field, field_validator, model_validator
 
 from services.core.config import Frozen, LogLevel, checked_names
-from services.policy.transport import bad_port
+from services.policy.transport import bad_target
 
 # how a request's views are put on workers (WorkerPool.place; `viewscale serve --placement`)
 Placement = Literal["auto", "pack", "spread"]
@@ -123,7 +123,7 @@ class ServerConfig(Frozen):
     @classmethod
     def _workers(cls, addresses: list[str]) -> list[str]:
         for a in addresses:
-            if why := bad_port(a):
+            if why := bad_target(a):
                 raise ValueError(f"{a}: {why}")
         return addresses
 

@@ -26,16 +26,48 @@ class ListenError(OSError):
 EXCLUSIVE_PORT = [("grpc.so_reuseport", 0)]
 
 
-def bad_port(target: str) -> str | None:
-    """Why a gRPC target to connect to has a port out of range, or None. gRPC takes a port beyond
-    65535 modulo 65536 without a word (99999 -> 34463): the call would go to another port. Targets:
-    host:port, [v6]:port, dns:///name:port, ipv4:A:P,B:P, ipv6:..., unix:path (no port)."""
+def bad_target(target: str) -> str | None:
+    """Why ``target`` is not a gRPC address to connect to, or None. Targets: host:port, [v6]:port,
+    dns:///name:port (or dns://authority/name:port), ipv4:A:P,B:P, ipv6:[A]:P,..., unix:path, and
+    xds:///name (not looked into).
+    gRPC takes what these checks refuse without a word, and then fails on every call: a URL
+    (http://host:port), a port that is no number or missing (host alone: port 443) or out of range
+    (99999 is taken modulo 65536: 34463), a typo'd separator; a server given such a worker waited
+    for it its whole worker_ready_s."""
     if target.startswith(("unix:", "unix-abstract:")):
-        return None
-    for part in target.split(","):  # (a scheme before it changes nothing: the port ends each part)
-        port = part.rpartition(":")[2]
-        if port.isdigit() and int(port) > 65535:
-            return f"port {port} is beyond 65535"
+        return None if target.partition(":")[2] else "no path after unix:"
+    if any(c.isspace() for c in target):
+        return "has a space in it"
+    rest = target
+    if "://" in target:
+        scheme, _, rest = target.partition("://")
+        if scheme == "xds":  # (a service mesh's name, resolved by its control plane)
+            return None
+        if scheme != "dns":
+            return f"{scheme}:// is not a gRPC address: give host:port (e.g. {rest.rstrip('/')})"
+        rest = rest.partition("/")[2]  # (dns://authority/name:port: the authority is the DNS server)
+    elif target.startswith(("ipv4:", "ipv6:")):
+        rest = target[5:]
+    for part in rest.split(","):
+        if why := _bad_host_port(part):
+            return why
+    return None
+
+
+def _bad_host_port(part: str) -> str | None:
+    host, colon, port = part.rpartition(":")
+    if not colon:
+        return f"{part or '(nothing)'} has no port (gRPC would use 443): give host:port"
+    if not port:
+        return "nothing after the last ':': give host:port"
+    if not port.isdigit():
+        return f"port {port!r} is not a number"
+    if not 0 < int(port) <= 65535:
+        return f"port {port} is beyond 65535" if int(port) > 65535 else f"port {port} is no port to connect to"
+    if not host:
+        return f"no host before :{port}"
+    if ":" in host and not (host.startswith("[") and host.endswith("]")):
+        return f"host {host!r} has a ':' in it (an IPv6 address goes in brackets: [::1]:{port})"
     return None
 
 

@@ -119,7 +119,8 @@ def _server_facts(address: str, tls_ca: str | None = None, timeout_s: float = 15
         ) as client:
             info = client.info
     except PolicyError as exc:
-        raise EvalError(f"--server {address}: {exc}") from None
+        said = str(exc)  # (most name the address already: not twice)
+        raise EvalError(f"--server: {said}" if address in said else f"--server {address}: {said}") from None
     except ValueError as exc:  # a --tls-ca file that holds no certificate
         raise EvalError(f"--tls-ca {tls_ca}: {exc}") from None
     finally:

@@ -433,13 +433,41 @@ def test_the_client_says_why_it_cannot_connect():
         PolicyClient(closed, connect_timeout_s=1.0)
     with pytest.raises(PolicyError, match="127.0.0.1:99999: port 99999 is beyond 65535"):
         PolicyClient("127.0.0.1:99999", connect_timeout_s=1.0)
+    # (a URL: before, a second's wait and then gRPC's "Misformatted domain name")
+    t0 = time.monotonic()
+    with pytest.raises(PolicyError, match="^http://127.0.0.1:50051: http:// is not a gRPC address: give host:port"):
+        PolicyClient("http://127.0.0.1:50051", connect_timeout_s=5.0)
+    assert time.monotonic() - t0 < 4.0  # said at once, not after the connect timeout
 
 
-def test_a_worker_address_with_a_port_beyond_65535_is_refused(tiny_checkpoint):
-    """(it went to port 34463 and waited there for a worker)"""
-    proc = viewscale("serve", "--checkpoint", str(tiny_checkpoint), "--worker", "dns:///policy-worker:99999")
-    assert proc.returncode == 2 and "listening" not in proc.stdout, proc.stderr
-    assert "worker: dns:///policy-worker:99999: port 99999 is beyond 65535" in proc.stderr
+URL = "http://127.0.0.1:50051"  # (what a browser would take)
+BAD_WORKER_ADDRESSES = [
+    ("dns:///policy-worker:99999", "port 99999 is beyond 65535"),  # (it went to port 34463)
+    ("http://10.0.0.5:7001", "http:// is not a gRPC address: give host:port (e.g. 10.0.0.5:7001)"),
+    ("10.0.0.5", "10.0.0.5 has no port (gRPC would use 443): give host:port"),
+    ("10.0.0.5:70o1", "port '70o1' is not a number"),
+    ("fe80::1:7001", "host 'fe80::1' has a ':' in it (an IPv6 address goes in brackets: [::1]:7001)"),
+]
+
+
+def test_an_address_grpc_cannot_use_is_refused_before_anything_starts(tiny_checkpoint, tmp_path):
+    """Before, each worker address but the first was taken, and the server waited its whole
+    worker_ready_s (120 s) for a worker gRPC could never reach (here, bounded to 10 s); `eval
+    --server` with a URL waited its 15 s, then quoted gRPC's "Misformatted domain name"."""
+    procs = viewscale_each(
+        [
+            ["serve", "--checkpoint", str(tiny_checkpoint), "--listen", "127.0.0.1:0", "--worker", address]
+            + ["--set", "worker_ready_s=10"]
+            for address, _ in BAD_WORKER_ADDRESSES
+        ]
+        + [["eval", "--server", URL, "--out", str(tmp_path / "eval")]]
+    )
+    for (address, says), proc in zip(BAD_WORKER_ADDRESSES, procs, strict=False):
+        assert proc.returncode == 2 and "ready policy" not in proc.stdout, (address, proc.stderr)
+        assert f"worker: {address}: {says}" in proc.stderr and proc.stderr.count("\n") == 1, (address, proc.stderr)
+    said = f"error: --server: {URL}: http:// is not a gRPC address: give host:port (e.g. 127.0.0.1:50051)"
+    assert procs[-1].returncode == 2 and procs[-1].stderr.strip() == said, procs[-1].stderr
+    assert not (tmp_path / "eval").exists()
 
 
 @pytest.mark.parametrize("how", ["env", "set", "yaml"])
@@ -488,6 +516,7 @@ def test_a_policy_teleop_it_cannot_use_is_one_line(tiny_checkpoint):
         cases = [
             (address, "[F, XX]", f"views XX: the policy server at {address} knows no such camera"),
             (f"127.0.0.1:{free_tcp_port()}", "[F]", "no policy server at 127.0.0.1:"),
+            (f"grpc://{address}", "[F]", f"grpc://{address}: grpc:// is not a gRPC address: give host:port"),
         ]
         for at, views, says in cases:
             proc = subprocess.run(
