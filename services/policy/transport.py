@@ -28,14 +28,14 @@ EXCLUSIVE_PORT = [("grpc.so_reuseport", 0)]
 
 def bad_target(target: str) -> str | None:
     """Why ``target`` is not a gRPC address to connect to, or None. Targets: host:port, [v6]:port,
-    dns:///name:port (or dns://authority/name:port), ipv4:A:P,B:P, ipv6:[A]:P,..., unix:path, and
-    xds:///name (not looked into).
+    dns:///name:port (or dns:name:port, dns://authority/name:port), ipv4:A:P,B:P, ipv6:[A]:P,...,
+    and, not looked into, unix:path, unix-abstract:name, vsock:cid:port and xds:///name.
     gRPC takes what these checks refuse without a word, and then fails on every call: a URL
     (http://host:port), a port that is no number or missing (host alone: port 443) or out of range
     (99999 is taken modulo 65536: 34463), a typo'd separator; a server given such a worker waited
     for it its whole worker_ready_s."""
-    if target.startswith(("unix:", "unix-abstract:")):
-        return None if target.partition(":")[2] else "no path after unix:"
+    if target.startswith(("unix:", "unix-abstract:", "vsock:")):
+        return None if target.partition(":")[2] else f"nothing after {target}"
     if any(c.isspace() for c in target):
         return "has a space in it"
     rest = target
@@ -46,8 +46,8 @@ def bad_target(target: str) -> str | None:
         if scheme != "dns":
             return f"{scheme}:// is not a gRPC address: give host:port (e.g. {rest.rstrip('/')})"
         rest = rest.partition("/")[2]  # (dns://authority/name:port: the authority is the DNS server)
-    elif target.startswith(("ipv4:", "ipv6:")):
-        rest = target[5:]
+    elif target.startswith(("ipv4:", "ipv6:", "dns:")):
+        rest = target.partition(":")[2]
     for part in rest.split(","):
         if why := _bad_host_port(part):
             return why
