@@ -78,7 +78,12 @@ def set_from_signal_handler(event: threading.Event, first: Callable[[], None] | 
         finally:
             event.set()
 
-    _thread.start_new_thread(work, ())
+    try:
+        _thread.start_new_thread(work, ())
+    except RuntimeError:  # no thread to be had: at interpreter shutdown (Python 3.12 on: a signal
+        # during atexit, from a parent-death burst) or out of threads. Set it here, as before: the
+        # process is ending, and a main thread inside stop.wait() then is unlikely.
+        event.set()
 
 
 def stop_on_signals(stop: threading.Event) -> None:

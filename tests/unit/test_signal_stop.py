@@ -80,3 +80,29 @@ def test_a_second_signal_right_after_the_first_interrupts_training_at_once():
     proc = subprocess.run([sys.executable, "-c", child], cwd=ROOT, capture_output=True, text=True, timeout=30)
     assert proc.stdout.strip() == "interrupted by SIGTERM", proc.stdout + proc.stderr[-3000:]
     assert proc.stderr.count("SIGTERM: stopping after this step") == 1, proc.stderr
+
+
+def test_a_signal_when_no_thread_can_be_started_still_stops_without_a_traceback():
+    """At interpreter shutdown Python 3.12 on refuses new threads (a parent-death SIGTERM of a burst
+    that comes during atexit): the handler's RuntimeError cut the atexit callback short (the
+    keyboard teleop's terminal restore is one). Faked here, on this Python, by the refusal itself."""
+    child = textwrap.dedent(
+        """
+        import os, signal, sys, threading
+        import services.core.runtime as runtime
+
+        def refuse(*args):
+            raise RuntimeError("can't create new thread at interpreter shutdown")
+
+        stop = threading.Event()
+        runtime.stop_on_signals(stop)
+        runtime._thread.start_new_thread = refuse
+        os.kill(os.getpid(), signal.SIGTERM)
+        for _ in range(1000):
+            pass
+        print("stopped" if stop.is_set() else "not stopped", flush=True)
+        """
+    )
+    proc = subprocess.run([sys.executable, "-c", child], cwd=ROOT, capture_output=True, text=True, timeout=30)
+    assert proc.returncode == 0 and proc.stdout.strip() == "stopped", proc.stdout + proc.stderr[-3000:]
+    assert "Traceback" not in proc.stderr, proc.stderr
