@@ -307,13 +307,15 @@ def _next_batch(it: Iterator[Any], step: int, out: Path) -> Any:
     """The loader's next batch. What fails in the loader (a worker's error, which torch raises again
     here with the worker's traceback as text, or a second Ctrl-C while waiting for a batch) leaves
     without a reference to the loader's iterator: neither the traceback into the loader nor this
-    frame's ``it``. The iterator's workers ignore SIGTERM (``_loader_leaves_stops_to_training``),
-    so an exception that kept it alive to the interpreter's exit left the run hung there."""
+    frame's ``it``, nor the error torch raised it from (its words for a worker that died while
+    the training waited for a batch, raised from the error of that wait: whose traceback holds the
+    iterator). The iterator's workers ignore SIGTERM (``_loader_leaves_stops_to_training``), so an
+    exception that kept it alive to the interpreter's exit left the run hung there."""
     try:
         return next(it)
     except BaseException as exc:
         failure = exc.with_traceback(None)
-        failure.__context__ = None
+        failure.__context__ = failure.__cause__ = None
     del it  # (this frame is in the traceback of what is raised below)
     if not isinstance(failure, Exception):  # KeyboardInterrupt, SystemExit
         raise failure

@@ -31,7 +31,14 @@ from services.dataset.store import DAMAGED, DatasetStore
 from services.policy.checkpoint import CheckpointError, latest_checkpoint, load_policy
 from services.policy.model import action_steps, sample
 from services.trainer.config import train_config_from_dict
-from services.trainer.train import StepBatchSampler, TrainingError, load_train_data, train
+from services.trainer.train import (
+    StepBatchSampler,
+    TrainingError,
+    _loader_leaves_stops_to_training,
+    _next_batch,
+    load_train_data,
+    train,
+)
 
 torch.set_num_threads(1)
 
@@ -651,6 +658,37 @@ def test_a_loader_worker_killed_ends_the_training_with_one_line(sim_dataset, tmp
         said,
     ), said
     assert multiprocessing.active_children() == []
+
+
+class _SlowSamples(torch.utils.data.Dataset):
+    """Samples a loader worker takes its time over, so that the training waits for the batch."""
+
+    def __len__(self) -> int:
+        return 8
+
+    def __getitem__(self, i: int) -> torch.Tensor:
+        time.sleep(0.5)
+        return torch.full((2,), float(i))
+
+
+def test_a_worker_dying_while_the_training_waits_for_its_batch_leaves_no_worker_behind(tmp_path):
+    """(torch raised its 'exited unexpectedly' from the error of the wait, whose traceback held the
+    loader's iterator: while the caller held the TrainingError, the other worker, which ignores
+    SIGTERM, lived on; the project's CI hung 75 minutes at pytest's exit joining it)"""
+    loader = torch.utils.data.DataLoader(
+        _SlowSamples(), batch_size=2, num_workers=2, worker_init_fn=_loader_leaves_stops_to_training
+    )
+    it = iter(loader)
+    victim = it._workers[0].pid
+    threading.Timer(0.2, os.kill, (victim, signal.SIGKILL)).start()  # the main thread is in its wait then
+    with pytest.raises(TrainingError) as err:
+        _next_batch(it, 3, tmp_path)
+    assert str(err.value) == (
+        f"training stopped at step 3: DataLoader worker (pid(s) {victim}) exited unexpectedly; "
+        "the last checkpoint (none yet) is kept: run the same command to resume"
+    )
+    del it, loader
+    assert multiprocessing.active_children() == []  # (with err still held)
 
 
 def test_a_training_holds_its_dataset_against_a_build_over_it(sim_dataset, tmp_path):
