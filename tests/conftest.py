@@ -3,8 +3,10 @@ small sim dataset recorded through the real services for the training tests."""
 
 from __future__ import annotations
 
+import multiprocessing
 import os
 import shutil
+import signal
 import subprocess
 from pathlib import Path
 
@@ -50,6 +52,32 @@ def _docker_usable() -> bool:
 def pytest_configure(config):
     # Headless MuJoCo for every test process and the services it starts (set here, never at import).
     os.environ.setdefault("MUJOCO_GL", "egl")
+
+
+@pytest.fixture(autouse=True)
+def _stop_signals_restored():
+    """A test that runs a command in-process (``viewscale(...)``) gets that command's stop-signal
+    handlers; the next test, and the processes it forks, get pytest's again."""
+    saved = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
+    yield
+    for sig, handler in saved.items():
+        if signal.getsignal(sig) is not handler:
+            signal.signal(sig, handler)
+
+
+def pytest_sessionfinish(session, exitstatus):
+    """Child processes a test left running fail the run and are killed here. Left to pytest's exit,
+    multiprocessing would join them after a SIGTERM that a training's loader workers ignore: the
+    run would hang (the project's CI once waited out its 90 minutes so)."""
+    left = multiprocessing.active_children()
+    for child in left:
+        child.kill()
+        child.join(10)
+    if left:
+        names = ", ".join(f"{c.name} (pid {c.pid})" for c in left)
+        print(f"\nerror: the tests left {len(left)} child process(es) running, killed now: {names}")
+        if session.exitstatus == 0:
+            session.exitstatus = 1
 
 
 def pytest_collection_modifyitems(config, items):
