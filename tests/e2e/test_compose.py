@@ -26,7 +26,8 @@ from mcap_protobuf.decoder import DecoderFactory
 from services.core.bus import free_tcp_port
 from services.core.rig import load_rig
 
-pytestmark = [pytest.mark.docker, pytest.mark.slow]
+# (no per-test timeout: each step below has its own, the image builds up to 30 minutes on a fresh machine)
+pytestmark = [pytest.mark.docker, pytest.mark.slow, pytest.mark.timeout(0)]
 
 ROOT = Path(__file__).resolve().parents[2]
 SCRIPTS = ROOT / "deploy" / "docker"
