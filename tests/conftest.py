@@ -49,18 +49,23 @@ def _docker_usable() -> bool:
     return subprocess.run(["docker", "info"], capture_output=True).returncode == 0
 
 
+_STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+_PYTEST_HANDLERS: dict[int, object] = {}
+
+
 def pytest_configure(config):
     # Headless MuJoCo for every test process and the services it starts (set here, never at import).
     os.environ.setdefault("MUJOCO_GL", "egl")
+    _PYTEST_HANDLERS.update({sig: signal.getsignal(sig) for sig in _STOP_SIGNALS})
 
 
 @pytest.fixture(autouse=True)
 def _stop_signals_restored():
-    """A test that runs a command in-process (``viewscale(...)``) gets that command's stop-signal
-    handlers; the next test, and the processes it forks, get pytest's again."""
-    saved = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
+    """A test that runs a command in-process (``viewscale(...)``, in the test or in a session fixture
+    it sets up) gets that command's stop-signal handlers; the next test, and the processes it forks,
+    get pytest's again."""
     yield
-    for sig, handler in saved.items():
+    for sig, handler in _PYTEST_HANDLERS.items():
         if signal.getsignal(sig) is not handler:
             signal.signal(sig, handler)
 
