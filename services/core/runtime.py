@@ -13,6 +13,7 @@ import signal
 import socket
 import sys
 import threading
+import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import IO
@@ -157,11 +158,20 @@ DOUBLED = {
 }
 
 
+RIVAL_SETTLE_S = 1.0
+
+
 def refuse_rivals(bus, me: str, rivals: set[str]) -> None:
     """ConfigError when a service in ``rivals`` (liveliness names) is on ``bus`` already: a sim
     started on a lab's session would publish its arm's state and frames in among the real ones, a
-    second recorder record every episode again. Checked before ``me`` publishes or announces."""
+    second recorder record every episode again. Checked before ``me`` publishes or announces.
+
+    A rival that has just stopped (a session started again at once) may still be seen for a moment:
+    its token's withdrawal reaches the router after it. Only one still there a second later counts."""
     found = sorted(rivals & bus.alive(timeout=2.0))
+    if found:
+        time.sleep(RIVAL_SETTLE_S)
+        found = sorted(rivals & bus.alive(timeout=2.0))
     if found:
         rival = found[0]
         kind = rival.split("/", 1)[0]  # (camera/F: a camera service's token for its camera F)
