@@ -19,10 +19,11 @@ def user_env(**extra: str) -> dict[str, str]:
     return {**env, **extra}
 
 
-def viewscale(*args: str, timeout: float = 600) -> subprocess.CompletedProcess:
+def viewscale(*args: str, timeout: float = 600, cwd: Path = ROOT) -> subprocess.CompletedProcess:
+    """``cwd``: the folder it runs in (a user's own, to try relative paths; default the source tree)."""
     return subprocess.run(
         [sys.executable, "-m", "services.cli", *args],
-        cwd=ROOT,
+        cwd=cwd,
         capture_output=True,
         text=True,
         timeout=timeout,

@@ -106,7 +106,8 @@ class Stage:
 
 
 def viewscale(args: list[str], log: Path) -> None:
-    """One ``viewscale`` command as a process (as a user would run it); its output goes to ``log``.
+    """One ``viewscale`` command as a process (as a user would run it, in this process's folder, so a
+    relative --root means the same to it); its output goes to ``log``.
 
     An interrupt of this run (Ctrl-C, SIGTERM: a KeyboardInterrupt here) is passed on to the command
     as one SIGINT, and its end awaited before the interrupt goes on: the command stops in its own way
@@ -119,7 +120,6 @@ def viewscale(args: list[str], log: Path) -> None:
         f.flush()
         proc = subprocess.Popen(
             [sys.executable, "-m", "services.cli", *args],
-            cwd=ROOT,
             stdout=f,
             stderr=f,
             env=child_env(),

@@ -48,8 +48,6 @@ from services.session.config import DEFAULT_MAX_TICKS, EVAL_SEED_FLOOR, EVAL_SEE
 from services.session.session import Session, SessionError
 from services.session.video import write_video
 
-ROOT = Path(__file__).resolve().parents[2]
-
 
 class EvalError(RuntimeError):
     """The evaluation could not run; the message says why."""
@@ -138,7 +136,8 @@ def _server_facts(address: str, tls_ca: str | None = None, timeout_s: float = 15
 
 
 class PolicyServer:
-    """``viewscale serve`` as a subprocess on a free loopback port; a context manager."""
+    """``viewscale serve`` as a subprocess on a free loopback port; a context manager. It runs in
+    this process's folder, where a relative --checkpoint, --out or --rig means what it means here."""
 
     def __init__(
         self,
@@ -179,9 +178,7 @@ class PolicyServer:
     def __enter__(self) -> PolicyServer:
         self.log_path.parent.mkdir(parents=True, exist_ok=True)
         with open(self.log_path, "a") as log:
-            self.proc = subprocess.Popen(
-                self.cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=log, text=True, env=child_env()
-            )
+            self.proc = subprocess.Popen(self.cmd, stdout=subprocess.PIPE, stderr=log, text=True, env=child_env())
         deadline = time.monotonic() + self.ready_timeout_s
         for line in self.proc.stdout:
             if line.startswith("ready policy "):

@@ -5,6 +5,7 @@ scripted-expert row through the same path, and `viewscale rerender`."""
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import signal
 import subprocess
@@ -27,11 +28,13 @@ ROOT = Path(__file__).resolve().parents[2]
 
 
 def test_eval_drives_the_sim_through_the_policy_server_and_records_every_rollout(tiny_checkpoint, tmp_path):
+    """Run as a user runs it in a folder of their own, with paths relative to it (before, the
+    policy server it starts ran in the source tree and did not find a relative --checkpoint)."""
     out = tmp_path / "eval"
     proc = viewscale(
         "eval",
         "--checkpoint",
-        str(tiny_checkpoint),
+        os.path.relpath(tiny_checkpoint, tmp_path),
         "--task",
         "lift",
         "--episodes",
@@ -45,10 +48,12 @@ def test_eval_drives_the_sim_through_the_policy_server_and_records_every_rollout
         "--video",
         "1",
         "--out",
-        str(out),
+        "eval",
+        cwd=tmp_path,
     )
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     assert "lift: " in proc.stdout and "report " in proc.stdout
+    assert (out / "logs" / "worker-0.log").is_file()  # the server's own logs, beside the evaluation's
     report = json.loads((out / "report.json").read_text())
     s, rows = report["summary"], report["episodes"]
     assert s["episodes"] == 2 and len(rows) == 2 and s["views"] == ["F", "FL"] and s["workers"] == 2
@@ -56,7 +61,7 @@ def test_eval_drives_the_sim_through_the_policy_server_and_records_every_rollout
     assert 0 <= s["wilson95"][0] <= s["success_rate"] <= s["wilson95"][1] <= 1
     assert s["requests"] >= 2 * 3 and s["getaction_ms_p50"] > 0 and s["underruns"] == 0  # lockstep: no underrun
     for r in rows:
-        ep = read_episode(r["path"])  # every rollout, success or failure, is a readable episode
+        ep = read_episode(tmp_path / r["path"])  # every rollout is a readable episode (path as --out was given)
         assert ep.metadata["ticks"] == r["ticks"] == 20 or r["success"]
         assert ep.metadata["lockstep"] is True and "-eval-s" in ep.metadata["episode_id"]
         commands = ep.messages("/teleop/command")

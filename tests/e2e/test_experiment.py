@@ -35,9 +35,15 @@ def experiment(root: Path, *extra: str) -> list[str]:
 
 
 def test_a_question_runs_caches_its_stages_and_resumes_after_a_kill(tmp_path):
+    """Run as a user runs it in a folder of their own, with a relative --root (before, its stages ran
+    in the source tree and wrote there, and the first stage found no demos where it had looked)."""
     root = tmp_path / "exp"
+
+    def experiment_here(*extra: str) -> list[str]:
+        return experiment(Path("exp"), *extra)
+
     proc = subprocess.Popen(
-        experiment(root), cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=user_env()
+        experiment_here(), cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=user_env()
     )
     seen = []
     for line in proc.stdout:  # kill it in the middle of its first evaluation
@@ -50,11 +56,11 @@ def test_a_question_runs_caches_its_stages_and_resumes_after_a_kill(tmp_path):
     assert any("collecting 2 lift demos" in s for s in seen) and any(s.lstrip().startswith("training") for s in seen)
     assert not (root / "q5-lift-smoke" / "results.json").exists()
 
-    nothing = subprocess.run(experiment(root, "--table-only"), cwd=ROOT, capture_output=True, text=True, timeout=120)
+    nothing = subprocess.run(experiment_here("--table-only"), cwd=tmp_path, capture_output=True, text=True, timeout=120)
     assert nothing.returncode == 2 and "none of the 3 selected cells is evaluated yet" in nothing.stderr
     assert not (root / "q5-lift-smoke" / "results.json").exists()
 
-    resumed = subprocess.run(experiment(root), cwd=ROOT, capture_output=True, text=True, timeout=900)
+    resumed = subprocess.run(experiment_here(), cwd=tmp_path, capture_output=True, text=True, timeout=900)
     assert resumed.returncode == 0, resumed.stdout[-3000:] + resumed.stderr[-3000:]
     out = resumed.stdout
     assert "collecting" not in out and "building" not in out and "training" not in out  # finished stages kept
@@ -70,11 +76,11 @@ def test_a_question_runs_caches_its_stages_and_resumes_after_a_kill(tmp_path):
     assert f"Trained on {host_description()}." in table
     assert (root / "q5-lift-smoke" / "success_vs_n.png").stat().st_size > 5000
 
-    again = subprocess.run(experiment(root), cwd=ROOT, capture_output=True, text=True, timeout=300)
+    again = subprocess.run(experiment_here(), cwd=tmp_path, capture_output=True, text=True, timeout=300)
     assert again.returncode == 0 and "evaluating from" not in again.stdout  # everything cached
     assert json.loads((root / "q5-lift-smoke" / "results.json").read_text())["cells"] == cells
 
-    one = subprocess.run(experiment(root, "--only", "eval_views=F,FL,FR"), cwd=ROOT, capture_output=True, text=True)
+    one = subprocess.run(experiment_here("--only", "eval_views=F,FL,FR"), cwd=tmp_path, capture_output=True, text=True)
     assert one.returncode == 0 and "[1/1]" in one.stdout and "evaluating from" not in one.stdout
     results = json.loads((root / "q5-lift-smoke" / "results.json").read_text())
     assert results["cells"] == [cells[1]] and results["only"] == ["eval_views=F,FL,FR"] and results["seeds"] is None
@@ -83,9 +89,9 @@ def test_a_question_runs_caches_its_stages_and_resumes_after_a_kill(tmp_path):
     # Q4 shares one cell with Q5 (five15 evaluated from F): --table-only tabulates it, lists the five
     # others and makes nothing
     stages = sorted(p.name for p in (root / "cache").iterdir())
-    q4 = experiment(root, "--table-only")
+    q4 = experiment_here("--table-only")
     q4[q4.index("q5")] = "q4"
-    partial = subprocess.run(q4, cwd=ROOT, capture_output=True, text=True, timeout=120)
+    partial = subprocess.run(q4, cwd=tmp_path, capture_output=True, text=True, timeout=120)
     assert partial.returncode == 0, partial.stdout[-3000:] + partial.stderr[-3000:]
     assert "not evaluated yet (5 of 6 cells" in partial.stdout and "evaluating" not in partial.stdout
     assert sorted(p.name for p in (root / "cache").iterdir()) == stages
