@@ -13,23 +13,42 @@ RIG=${RIG:-five15}
 SPACE=${SPACE:-camera}
 STEPS=${STEPS:-2500}
 EVAL_EPISODES=${EVAL_EPISODES:-10}
-COMPOSE=${COMPOSE:-F,FL,FR}
+COMPOSE=${COMPOSE:-}  # default: F,FL,FR, or the rig's views where it has no FL, FR
 WORKERS=${WORKERS:-3}
 OUT=${OUT:-data/demo}
 export MUJOCO_GL=${MUJOCO_GL:-egl}
 t0=$(date +%s)
 stamp() { local s=$(($(date +%s) - t0)); printf '[%02d:%02d]' $((s / 60)) $((s % 60)); }
 
-views=$($BIN/python - "$RIG" <<'EOF'
+# Every setting is checked before anything starts: a typo is one line now, not an error after
+# minutes of collection and training. Prints the rig's views, the views composed (COMPOSE; by
+# default F,FL,FR where the rig has them, else all its views) and the view evaluated alone (F,
+# else the rig's first).
+plan=$($BIN/python - "$RIG" "$COMPOSE" "$SPACE" "$EPISODES" "$STEPS" "$EVAL_EPISODES" "$WORKERS" <<'EOF'
 import sys
 from services.core.config import ConfigError
 from services.core.rig import load_rig
+rig, compose, space, *counts = sys.argv[1:]
 try:
-    print(",".join(load_rig(sys.argv[1]).names))
+    views = list(load_rig(rig).names)
 except ConfigError as exc:
     sys.exit(f"error: RIG: {exc}")
+for name, value, least in zip(("EPISODES", "STEPS", "EVAL_EPISODES", "WORKERS"), counts, (1, 1, 1, 0)):
+    if not value.isdigit() or int(value) < least:
+        sys.exit(f"error: {name}={value}: give a whole number, at least {least}")
+if space not in ("camera", "base", "eef"):
+    sys.exit(f"error: SPACE={space}: one of camera, base, eef")
+if compose:
+    chosen = compose.split(",")
+    missing = [v for v in chosen if v not in views]
+    if missing:
+        sys.exit(f"error: COMPOSE={compose}: rig {rig} has no camera {', '.join(map(repr, missing))}; its cameras: {', '.join(views)}")
+else:
+    chosen = ["F", "FL", "FR"] if {"F", "FL", "FR"} <= set(views) else views
+print(",".join(views), ",".join(chosen), "F" if "F" in views else views[0])
 EOF
 ) || exit 2
+read -r views COMPOSE single <<<"$plan"
 
 # Each run replaces its $OUT: only a folder a demo run made (its marker inside), or an empty one, is
 # removed, so that OUT=data (the README's recordings) or OUT=~ loses nothing.
@@ -83,25 +102,25 @@ done
 echo "policy server ready on $address (logs: $OUT/serve)"
 
 echo
-echo "$(stamp) == 5/5 evaluate: $EVAL_EPISODES closed-loop episodes from F, then composed over $COMPOSE"
-$BIN/viewscale eval --server "$address" --task "$TASK" --episodes "$EVAL_EPISODES" --views F \
-  --video 2 --out "$OUT/eval-F"
+echo "$(stamp) == 5/5 evaluate: $EVAL_EPISODES closed-loop episodes from $single, then composed over $COMPOSE"
+$BIN/viewscale eval --server "$address" --task "$TASK" --episodes "$EVAL_EPISODES" --rig "$RIG" --views "$single" \
+  --video 2 --out "$OUT/eval-$single"
 echo
-$BIN/viewscale eval --server "$address" --task "$TASK" --episodes "$EVAL_EPISODES" --views "$COMPOSE" \
-  --video 2 --video-camera F --out "$OUT/eval-composed"
+$BIN/viewscale eval --server "$address" --task "$TASK" --episodes "$EVAL_EPISODES" --rig "$RIG" --views "$COMPOSE" \
+  --video 2 --video-camera "$single" --out "$OUT/eval-composed"
 kill "$server" 2>/dev/null || true
 wait "$server" 2>/dev/null || true
 trap - EXIT
 
 echo
 echo "$(stamp) done"
-$BIN/python - "$OUT" <<'EOF'
+$BIN/python - "$OUT" "$single" <<'EOF'
 import json, sys
 from pathlib import Path
 
 out = Path(sys.argv[1])
 rows = ["| inference views | success | Wilson 95 % | ticks (successes) | GetAction p50 / p99 ms |", "|---|---|---|---|---|"]
-for name in ("eval-F", "eval-composed"):
+for name in (f"eval-{sys.argv[2]}", "eval-composed"):
     s = json.loads((out / name / "report.json").read_text())["summary"]
     lo, hi = s["wilson95"]
     ticks = s["ticks_success_mean"] if s["ticks_success_mean"] is not None else "-"
@@ -118,7 +137,7 @@ cat <<EOF
   episodes       $OUT/raw/*.mcap (open them in Foxglove)
   pseudo-demos   $OUT/ds (contact sheet: $OUT/ds/contact_sheet.png)
   policy         $OUT/run (loss curve: $OUT/run/loss.png; checkpoints: $OUT/run/checkpoints)
-  evaluations    $OUT/eval-F/report.md, $OUT/eval-composed/report.md (rollouts: */rollouts/*.mcap)
-  videos         $OUT/eval-F/videos, $OUT/eval-composed/videos
+  evaluations    $OUT/eval-$single/report.md, $OUT/eval-composed/report.md (rollouts: */rollouts/*.mcap)
+  videos         $OUT/eval-$single/videos, $OUT/eval-composed/videos
   summary        $OUT/summary.md
 EOF

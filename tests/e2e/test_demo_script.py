@@ -54,8 +54,8 @@ def test_its_own_out_folder_is_replaced_and_a_bad_rig_is_one_line(tmp_path):
     out.mkdir()
     (out / ".viewscale-demo").write_text("made by deploy/demo.sh\n")
     (out / "stale.txt").write_text("from the last run")
-    run = demo(tmp_path, OUT=str(out), EPISODES="0")  # replaced, then collect refuses 0 episodes
-    assert run.returncode != 0 and "--episodes must be at least 1, got 0" in run.stderr
+    run = demo(tmp_path, OUT=str(out), TASK="cube")  # replaced, then collect refuses the task
+    assert run.returncode != 0 and "unknown task 'cube'; tasks: lift, can, square" in run.stderr
     assert sorted(p.name for p in out.iterdir()) == [".viewscale-demo"]
     run = demo(tmp_path, OUT=str(tmp_path / "other"), RIG="five51")
     assert run.returncode == 2
@@ -63,3 +63,33 @@ def test_its_own_out_folder_is_replaced_and_a_bad_rig_is_one_line(tmp_path):
         "error: RIG: unknown rig 'five51'; presets: five15, front, front_side_top, three15, three30"
     )
     assert not (tmp_path / "other").exists()
+
+
+def test_a_setting_that_cannot_work_is_one_line_before_anything_starts(tmp_path):
+    """(before: COMPOSE naming a camera the rig lacks failed once the policy server started, after
+    the collection and the training; a STEPS, EVAL_EPISODES or WORKERS that is no number failed at
+    the stage that used it)"""
+    out = tmp_path / "demo"
+    for env, said in [
+        ({"RIG": "three30", "COMPOSE": "F,FL,FR"}, "error: COMPOSE=F,FL,FR: rig three30 has no camera 'FL', 'FR'; "),
+        ({"COMPOSE": "F,,FL"}, "error: COMPOSE=F,,FL: rig five15 has no camera ''; its cameras: F, FL, FR, FU, FD"),
+        ({"STEPS": "2k"}, "error: STEPS=2k: give a whole number, at least 1"),
+        ({"EVAL_EPISODES": "0"}, "error: EVAL_EPISODES=0: give a whole number, at least 1"),
+        ({"WORKERS": "-1"}, "error: WORKERS=-1: give a whole number, at least 0"),
+        ({"SPACE": "world"}, "error: SPACE=world: one of camera, base, eef"),
+    ]:
+        run = demo(tmp_path, OUT=str(out), **env)
+        assert run.returncode == 2 and run.stderr.startswith(said), (env, run.stderr)
+        assert not out.exists()  # nothing collected, nothing made
+
+
+def test_a_tiny_demo_on_a_rig_without_fl_and_fr_composes_the_rigs_views(tmp_path):
+    """The whole script end to end, at tiny settings, on the 30-degree rig (F, FL30, FR30): before,
+    its default COMPOSE=F,FL,FR failed once the policy server started."""
+    out = tmp_path / "demo"
+    run = demo(tmp_path, OUT=str(out), RIG="three30", EPISODES="2", STEPS="5", EVAL_EPISODES="1", WORKERS="1")
+    assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-3000:]
+    assert "closed-loop episodes from F, then composed over F,FL30,FR30" in run.stdout
+    summary = (out / "summary.md").read_text()
+    assert "| F | " in summary and "| F,FL30,FR30 | " in summary
+    assert (out / "eval-F" / "report.json").is_file() and (out / "eval-composed" / "videos").is_dir()
