@@ -369,7 +369,8 @@ def evaluate(spec: EvalSpec, out: Path, progress: Callable[[str], None] = print)
             facts = _checkpoint_facts(spec.checkpoint)
         if facts["tasks"] and spec.task not in facts["tasks"]:
             progress(f"note: {facts['path']} was trained on {', '.join(facts['tasks'])}, evaluated on {spec.task}")
-    rig = spec.rig or (facts["rigs"][0] if facts and len(facts["rigs"]) == 1 else None) or "five15"
+    policy_rig = facts["rigs"][0] if facts and len(facts["rigs"]) == 1 else None
+    rig = spec.rig or policy_rig or "five15"
     size = spec.size or (facts["size"][0] if facts and facts["size"] else 84)
     views = spec.views or (facts["views"] if facts else None)
     if spec.gamma:
@@ -384,7 +385,16 @@ def evaluate(spec: EvalSpec, out: Path, progress: Callable[[str], None] = print)
     missing = [v for v in views or [] if v not in cameras]
     if missing and not spec.expert:
         given = "--views" if spec.views else f"--views (default: the policy's views, {','.join(views or [])})"
-        raise EvalError(f"{given}: rig {rig} has no camera {', '.join(missing)}; its cameras: {', '.join(cameras)}")
+        which = (
+            ""
+            if spec.rig
+            else " (the policy's rig: --rig renders another)"
+            if policy_rig
+            else " (the default: --rig names the rig the sim renders)"
+        )
+        raise EvalError(
+            f"{given}: rig {rig}{which} has no camera {', '.join(missing)}; its cameras: {', '.join(cameras)}"
+        )
     video_camera = spec.video_camera or (views[0] if views else cameras[0])
     if spec.video and video_camera not in cameras:  # (found out once every episode had run, before)
         raise EvalError(f"--video-camera {video_camera}: rig {rig} has no such camera ({', '.join(cameras)})")

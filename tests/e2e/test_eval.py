@@ -149,11 +149,22 @@ def test_eval_refuses_bad_input_with_one_line_before_starting_anything(tiny_chec
     garbled = tmp_path / "garbled"  # policy.json cut short: a JSON traceback before
     shutil.copytree(resolve_checkpoint(tiny_checkpoint), garbled)
     (garbled / "policy.json").write_text("{")
+    rigless = tmp_path / "rigless"  # a policy that names no one rig (as a running server names none)
+    shutil.copytree(resolve_checkpoint(tiny_checkpoint), rigless)
+    info = json.loads((rigless / "policy.json").read_text())
+    (rigless / "policy.json").write_text(json.dumps({**info, "rigs": []}))
     cases = [
         (["--checkpoint", str(garbled)], f"{garbled / 'policy.json'} cannot be read (Expecting property name"),
         ([*ck, "--task", "pour"], "unknown task 'pour'"),
         ([*ck, "--episodes", "0"], "--episodes must be at least 1, got 0"),
-        ([*ck, "--views", "F,XX"], "--views: rig three15 has no camera XX; its cameras: F, FL, FR"),
+        (
+            [*ck, "--views", "F,XX"],
+            "--views: rig three15 (the policy's rig: --rig renders another) has no camera XX; its cameras: F, FL, FR",
+        ),
+        (
+            ["--checkpoint", str(rigless), "--views", "F,XX"],
+            "--views: rig five15 (the default: --rig names the rig the sim renders) has no camera XX",
+        ),
         ([*ck, "--views", "F,FL,F"], "--views names F more than once"),
         ([*ck, "--rig", "front"], "--views (default: the policy's views, F,FL,FR): rig front has no camera FL, FR"),
         ([*ck, "--rig", "nosuch"], "--rig: unknown rig 'nosuch'"),
