@@ -102,12 +102,18 @@ done
 echo "policy server ready on $address (logs: $OUT/serve)"
 
 echo
-echo "$(stamp) == 5/5 evaluate: $EVAL_EPISODES closed-loop episodes from $single, then composed over $COMPOSE"
+if [ "$COMPOSE" = "$single" ]; then
+  echo "$(stamp) == 5/5 evaluate: $EVAL_EPISODES closed-loop episodes from $single (one view: nothing to compose)"
+else
+  echo "$(stamp) == 5/5 evaluate: $EVAL_EPISODES closed-loop episodes from $single, then composed over $COMPOSE"
+fi
 $BIN/viewscale eval --server "$address" --task "$TASK" --episodes "$EVAL_EPISODES" --rig "$RIG" --views "$single" \
   --video 2 --out "$OUT/eval-$single"
-echo
-$BIN/viewscale eval --server "$address" --task "$TASK" --episodes "$EVAL_EPISODES" --rig "$RIG" --views "$COMPOSE" \
-  --video 2 --video-camera "$single" --out "$OUT/eval-composed"
+if [ "$COMPOSE" != "$single" ]; then
+  echo
+  $BIN/viewscale eval --server "$address" --task "$TASK" --episodes "$EVAL_EPISODES" --rig "$RIG" --views "$COMPOSE" \
+    --video 2 --video-camera "$single" --out "$OUT/eval-composed"
+fi
 kill "$server" 2>/dev/null || true
 wait "$server" 2>/dev/null || true
 trap - EXIT
@@ -121,6 +127,8 @@ from pathlib import Path
 out = Path(sys.argv[1])
 rows = ["| inference views | success | Wilson 95 % | ticks (successes) | GetAction p50 / p99 ms |", "|---|---|---|---|---|"]
 for name in (f"eval-{sys.argv[2]}", "eval-composed"):
+    if not (out / name).is_dir():  # (one view: no composed evaluation)
+        continue
     s = json.loads((out / name / "report.json").read_text())["summary"]
     lo, hi = s["wilson95"]
     ticks = s["ticks_success_mean"] if s["ticks_success_mean"] is not None else "-"
@@ -137,7 +145,7 @@ cat <<EOF
   episodes       $OUT/raw/*.mcap (open them in Foxglove)
   pseudo-demos   $OUT/ds (contact sheet: $OUT/ds/contact_sheet.png)
   policy         $OUT/run (loss curve: $OUT/run/loss.png; checkpoints: $OUT/run/checkpoints)
-  evaluations    $OUT/eval-$single/report.md, $OUT/eval-composed/report.md (rollouts: */rollouts/*.mcap)
-  videos         $OUT/eval-$single/videos, $OUT/eval-composed/videos
+  evaluations    $OUT/eval-*/report.md (rollouts: */rollouts/*.mcap)
+  videos         $OUT/eval-*/videos
   summary        $OUT/summary.md
 EOF
