@@ -344,6 +344,7 @@ def test_a_frozen_or_killed_worker_moves_its_views_and_is_readmitted(checkpoint,
             t1 = time.monotonic()
             workers[1][0].kill()  # kill -9: its streams break mid-request
             killed = wait_for(lambda: robots.moved_after(t1), 60, "views moved off the killed worker")
+            stop(workers[1][0])  # (reaped, its log file removed: not left in /tmp by every run)
             workers[1] = start_worker(checkpoint, port=ports[1])
             # a new process: nothing served yet
             wait_for(lambda: worker_info(workers[1][1]).streams > 0, 60, "the restarted worker re-admitted")
