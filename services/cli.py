@@ -451,7 +451,7 @@ def build_parser() -> argparse.ArgumentParser:
         "(its token: VIEWSCALE_DRIVER__TOKEN)",
     )
     p.add_argument("--tls-ca", metavar="PEM", help="--server serves TLS: the CA certificate that signed its own")
-    p.add_argument("--rig", help="the sim's rig (default: the checkpoint's)")
+    p.add_argument("--rig", help="the sim's rig (default: the checkpoint's; five15 with --server, which names none)")
     p.add_argument("--size", type=int, help="frame size the sim renders (default: the checkpoint's)")
     p.add_argument("--realtime", action="store_true", help="run at the control rate (default lockstep)")
     p.add_argument("--seed", type=int, help="first seed (default: the task's fixed evaluation seeds)")
