@@ -189,6 +189,7 @@ class SimService:
 
     # -- the loop -----------------------------------------------------------------------
     def run(self, stop: threading.Event) -> None:
+        self.loop.release_on(stop)
         rate = Rate(self.cfg.control_hz)
         was_running = False
         while not stop.is_set():

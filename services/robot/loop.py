@@ -71,6 +71,7 @@ class ControlLoop:
         self._seq = 0
         self._cv = threading.Condition()
         self._latest: tuple[int, EefDelta] | None = None  # (tick, validated action)
+        self._released = False  # the service is stopping: no tick waits for a command any more
         self._state_pub = bus.publisher(topics.ROBOT_STATE)
         self._applied_pub = bus.publisher(topics.APPLIED_ACTION)
         bus.subscribe(topics.COMMAND, self._on_command, on_error=self._on_malformed)
@@ -101,9 +102,23 @@ class ControlLoop:
                 if self._latest is not None and self._latest[0] == tick:
                     return self._latest[1]
                 remaining = deadline - time.monotonic()
-                if remaining <= 0:
+                if remaining <= 0 or self._released:
                     return None
                 self._cv.wait(remaining)
+
+    def release_on(self, stop: threading.Event) -> None:
+        """Once ``stop`` is set, a tick waiting for its command holds at once instead of at its
+        deadline: in lockstep that may be minutes away (``viewscale eval`` waits 120 s for a slow
+        policy), and a service stopped mid-episode, its teleop gone, would wait it out (before: the
+        session's 20 s for a stop, then SIGKILL)."""
+
+        def release() -> None:
+            stop.wait()
+            with self._cv:
+                self._released = True
+                self._cv.notify_all()
+
+        threading.Thread(target=release, name="release-on-stop", daemon=True).start()
 
     # -- one tick -----------------------------------------------------------------------
     def begin_episode(self, episode_id: str) -> None:
@@ -160,6 +175,7 @@ class ControlLoop:
 
     def run(self, stop: threading.Event) -> None:
         """Tick from now until ``stop`` (the standalone robot service's loop)."""
+        self.release_on(stop)
         rate = Rate(self.control_hz)
         while not stop.is_set():
             self.step()
