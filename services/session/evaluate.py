@@ -45,7 +45,7 @@ from services.policy.aggregation import CompositionError, renormalise
 from services.policy.checkpoint import read_info, resolve_checkpoint
 from services.session.collect import CollectError, LocalStack
 from services.session.config import DEFAULT_MAX_TICKS, EVAL_SEED_FLOOR, EVAL_SEEDS, SessionConfig
-from services.session.session import Session, SessionError
+from services.session.session import Session, SessionError, SessionResult
 from services.session.video import write_video
 
 
@@ -279,8 +279,15 @@ def format_report(rep: dict[str, Any], rows: list[dict[str, Any]]) -> str:
         f"{100 * rep['wilson95'][0]:.0f}-{100 * rep['wilson95'][1]:.0f} %), seeds {rep['seeds'][0]}.."
         f"{rep['seeds'][-1]}, {'real time' if rep['realtime'] else 'lockstep'}, {rep['wall_s']:.0f} s.",
         "",
-        f"- ticks: {rep['ticks_success_mean']} mean over the successes, {rep['ticks_all_mean']} over all",
     ]
+    if rep.get("interrupted"):
+        lines += [
+            f"**Interrupted ({rep['interrupted']}) after {rep['episodes']} of {rep['episodes_asked']} episodes**: "
+            "these are the episodes that ran to their end; the one cut short is kept among the rollouts, "
+            "flagged, and not counted.",
+            "",
+        ]
+    lines.append(f"- ticks: {rep['ticks_success_mean']} mean over the successes, {rep['ticks_all_mean']} over all")
     if not rep["expert"]:
         lines += [
             f"- GetAction: p50 {rep['getaction_ms_p50']:.1f} ms, p99 {rep['getaction_ms_p99']:.1f} ms over "
@@ -463,33 +470,54 @@ def evaluate(spec: EvalSpec, out: Path, progress: Callable[[str], None] = print)
                 progress(f"services ready on {stack.endpoint}; logs in {stack.log_dir}")
                 cfg = SessionConfig(bus=stack.bus_config(), **cfg_kw)
                 with Bus(cfg.bus) as bus:
+                    sessions.append(Session(cfg, bus, progress=progress))
                     try:
-                        return Session(cfg, bus, progress=progress).run()
+                        return sessions[-1].run()
                     except (SessionError, TimeoutError) as exc:
                         stack.check_alive(grace_s=3.0)
                         raise CollectError(str(exc)) from exc
 
-        if spec.expert:
-            result = run_session(None)
-        elif spec.server:
-            progress(f"policy server {spec.server}: {facts['path']}")
-            result = run_session(spec.server)
-        else:
-            with PolicyServer(facts["path"], out / "logs", views, spec.workers, rig, spec.task) as server:
-                progress(f"policy server ready on {server.address} ({spec.workers or 'no'} workers)")
-                result = run_session(server.address)
+        def report(result: SessionResult, interrupted: str | None = None) -> tuple[dict, list[dict]]:
+            stats = {}
+            if stats_file.is_file():
+                for line in stats_file.read_text().splitlines():
+                    row = json.loads(line)
+                    stats[row["episode_id"]] = row
+            rows = _episode_rows(result, stats)
+            latencies = [x for st in stats.values() for x in st["latency_ms"]]
+            rep = summarise(replace(spec, views=views), rows, latencies, facts, time.monotonic() - t0)
+            rep["rig"], rep["size"] = rig, size
+            rep["episodes_asked"], rep["interrupted"] = spec.episodes, interrupted
+            (out / "report.json").write_text(json.dumps({"summary": rep, "episodes": rows}, indent=2) + "\n")
+            (out / "report.md").write_text(format_report(rep, rows))
+            return rep, rows
 
-        stats = {}
-        if stats_file.is_file():
-            for line in stats_file.read_text().splitlines():
-                row = json.loads(line)
-                stats[row["episode_id"]] = row
-        rows = _episode_rows(result, stats)
-        latencies = [x for s in stats.values() for x in s["latency_ms"]]
-        rep = summarise(replace(spec, views=views), rows, latencies, facts, time.monotonic() - t0)
-        rep["rig"], rep["size"] = rig, size
-        (out / "report.json").write_text(json.dumps({"summary": rep, "episodes": rows}, indent=2) + "\n")
-        (out / "report.md").write_text(format_report(rep, rows))
+        sessions: list[Session] = []
+        try:
+            if spec.expert:
+                result = run_session(None)
+            elif spec.server:
+                progress(f"policy server {spec.server}: {facts['path']}")
+                result = run_session(spec.server)
+            else:
+                with PolicyServer(facts["path"], out / "logs", views, spec.workers, rig, spec.task) as server:
+                    progress(f"policy server ready on {server.address} ({spec.workers or 'no'} workers)")
+                    result = run_session(server.address)
+        except KeyboardInterrupt as exc:
+            # the episodes that ran to their end are evaluated: a report of them, marked as
+            # interrupted (the one cut short is kept among the rollouts, flagged, and not counted)
+            done = getattr(sessions[-1], "result", None) if sessions else None
+            if done is not None and done.attempts:
+                rep, _ = report(done, interrupted=str(exc) or "SIGINT")
+                lo, hi = rep["wilson95"]
+                progress(
+                    f"{spec.task}: {rep['successes']}/{rep['episodes']} successful in the {rep['episodes']} of "
+                    f"{spec.episodes} episodes that ran to their end ({100 * rep['success_rate']:.0f} %, Wilson 95% "
+                    f"{100 * lo:.0f}-{100 * hi:.0f} %); report {out / 'report.md'}"
+                )
+            raise
+
+        rep, rows = report(result)
         if spec.video:
             for r in rows[: spec.video]:
                 path = write_video(

@@ -223,7 +223,7 @@ class Session:
         self.bus.wait_alive(cfg.services, timeout=cfg.wait_services_s)
         if cfg.warmup_ticks:
             self.warm_up()
-        result = SessionResult()
+        result = self.result = SessionResult()  # (what has run so far, should the run be interrupted)
         max_attempts = cfg.episodes if cfg.evaluation else cfg.max_attempts or 3 * cfg.episodes
         seed = cfg.seed
         while len(result.recorded) < cfg.episodes:

@@ -10,6 +10,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import cv2
@@ -113,6 +114,37 @@ def test_an_eval_stopped_while_it_waits_for_its_server_says_it_recorded_nothing(
     _, err = proc.communicate(timeout=30)
     assert proc.returncode == 130 and err.strip() == "interrupted (SIGTERM): services stopped; no rollouts recorded"
     assert not (tmp_path / "eval" / "rollouts").exists()
+
+
+def test_an_interrupted_evaluation_reports_the_episodes_that_ended_and_stops_at_once(tmp_path):
+    """Ctrl-C in the middle of an evaluation: the episodes that ran to their end are reported
+    (before: no report at all, only their rollouts), marked as interrupted, the one cut short kept
+    among the rollouts and not counted; and it ends within seconds (before: up to 41 s, the sim
+    waiting out its lockstep command timeout)."""
+    out = tmp_path / "eval"
+    cmd = [sys.executable, "-m", "services.cli", "eval", "--expert", "--episodes", "20", "--out", str(out)]
+    proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=user_env())
+    for line in proc.stdout:
+        if line.startswith("[2/20]"):
+            break
+    rollouts = out / "rollouts"
+    deadline = time.monotonic() + 60
+    while len(list(rollouts.glob("*.mcap.part"))) < 1:  # the third episode is under way
+        assert time.monotonic() < deadline and proc.poll() is None
+        time.sleep(0.02)
+    t0 = time.monotonic()
+    proc.send_signal(signal.SIGINT)
+    rest, err = proc.communicate(timeout=60)
+    took = time.monotonic() - t0
+    assert proc.returncode == 130 and "Traceback" not in err, err[-3000:]
+    assert took < 10, f"{took:.1f} s from Ctrl-C to its end"
+    report = json.loads((out / "report.json").read_text())
+    s, rows = report["summary"], report["episodes"]
+    n = s["episodes"]
+    assert s["interrupted"] == "SIGINT" and s["episodes_asked"] == 20 and 2 <= n < 20 and len(rows) == n
+    assert len(list(rollouts.glob("*.mcap"))) == n + 1  # and the one cut short, kept
+    assert f"successful in the {n} of 20 episodes that ran to their end" in rest
+    assert f"**Interrupted (SIGINT) after {n} of 20 episodes**" in (out / "report.md").read_text()
 
 
 def test_the_expert_row_goes_through_the_same_path(tmp_path):
