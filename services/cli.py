@@ -197,6 +197,9 @@ def _rerender(args: argparse.Namespace) -> int:
                 )
         episodes = find_episodes([Path(p) for p in args.raw])  # a wrong --raw: no empty --out left behind
         refuse_other_output(out, "--out", RECORDINGS)
+        # Ctrl-C, SIGTERM, SIGHUP: the episode being rendered is dropped (its .part removed), those
+        # done are kept, and the same command renders the rest
+        _interrupt_on_signals()
         with output_dir(out, "--out", keep_empty=False):  # taken back if nothing was written in it
             result = rerender(
                 episodes,  # (the files found: the folders are not walked again)
@@ -208,6 +211,14 @@ def _rerender(args: argparse.Namespace) -> int:
     except (ConfigError, DatasetError, OutputError, OSError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt as exc:
+        n = len(list(out.glob("*.mcap"))) if out.is_dir() else 0
+        print(
+            f"interrupted ({exc or 'SIGINT'}): {n} re-rendered episodes in {out}; run the same command to render "
+            "the rest",
+            file=sys.stderr,
+        )
+        return 130
     done = result.written
     kept = [e for e in done if e.kept]
     if done:

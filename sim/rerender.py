@@ -13,7 +13,8 @@ demonstrations, and a new camera layout can be tried without collecting again.
 An episode whose replay leaves the recorded trajectory (more than ``tolerance_m``), or that has no
 seed or task, is refused with its reason; the others go on. One that an earlier run re-rendered
 into ``out`` from the same file at the same size is kept, so that a run over a folder that gained
-episodes renders only the new ones.
+episodes renders only the new ones. A run holds ``out`` while it writes there (a second is refused):
+the ``.part`` of an episode it finds there was left by a run that was stopped, and is rendered again.
 """
 
 from __future__ import annotations
@@ -28,12 +29,20 @@ import numpy as np
 from services.core import topics
 from services.core.rig import load_rig
 from services.core.robot_types import action_from_msg, state_msg
+from services.core.runtime import exclusive
 from services.core.tensors import compressed_image
 from services.dataset.build import find_episodes
 from services.pb.control_pb2 import AppliedAction
 from services.pb.episode_pb2 import EpisodeMeta
 from services.recorder.reader import EpisodeReadError, read_episode
-from services.recorder.writer import EPISODE_CHANNEL, EPISODE_RECORD, START_RECORD, EpisodeWriter, meta_to_record
+from services.recorder.writer import (
+    EPISODE_CHANNEL,
+    EPISODE_RECORD,
+    PART_SUFFIX,
+    START_RECORD,
+    EpisodeWriter,
+    meta_to_record,
+)
 from services.recorder.writer import start_record as start_record_of
 from sim.service import task_state_msg
 from sim.world import SimWorld
@@ -53,6 +62,7 @@ class Rerendered:
     max_deviation_m: float = 0.0
     error: str = ""
     kept: bool = False  # re-rendered by an earlier run, from the same file at the same size
+    stale_part: bool = False  # a .part of it, left by a run that was stopped, was removed first
 
 
 def _done_before(path: Path, src: Path, size: int, cameras: list[str]) -> Rerendered | None:
@@ -79,8 +89,16 @@ class RerenderResult:
 
 
 def rerender_episode(
-    src: Path, rig_name: str, out_dir: Path, size: int | None = None, tolerance_m: float = 1e-5
+    src: Path,
+    rig_name: str,
+    out_dir: Path,
+    size: int | None = None,
+    tolerance_m: float = 1e-5,
+    own_folder: bool = False,
 ) -> Rerendered:
+    """Replay ``src`` through ``rig_name`` into ``out_dir``. ``own_folder``: the caller holds the
+    folder's lock (``rerender``), so a ``.part`` of this episode there is what a run that was
+    stopped left (killed: nothing cleaned up after it), and is rendered again."""
     try:
         ep = read_episode(src)
     except EpisodeReadError as exc:
@@ -119,8 +137,14 @@ def rerender_episode(
         path=str(path),
         rerendered_from=str(src.resolve()),
     )
-    writer = EpisodeWriter(path)
     out = Rerendered(src)
+    part = path.with_name(path.name + PART_SUFFIX)
+    if part.exists():
+        if not own_folder:
+            raise RerenderError(f"{part} exists: another run is rendering it, or one that was stopped left it")
+        part.unlink()
+        out.stale_part = True
+    writer = EpisodeWriter(path)
     try:
         writer.add_metadata(START_RECORD, start_record_of(meta))
         with SimWorld(task, rig, size, size, hz) as world:
@@ -198,20 +222,24 @@ def rerender(
     load_rig(rig)  # an unknown rig fails before anything is read
     sources = find_episodes(raw)
     result = RerenderResult()
-    for i, src in enumerate(sources, 1):
-        t0 = time.perf_counter()
-        try:
-            done = rerender_episode(src, rig, Path(out), size)
-        except RerenderError as exc:
-            result.episodes.append(Rerendered(src, error=str(exc)))
-            progress(f"[{i}/{len(sources)}] {src.name}: SKIPPED: {exc}")
-            continue
-        result.episodes.append(done)
-        if done.kept:
-            progress(f"[{i}/{len(sources)}] {src.name}: re-rendered before, kept -> {done.path}")
-            continue
-        progress(
-            f"[{i}/{len(sources)}] {src.name}: {done.ticks} ticks through {rig} in "
-            f"{time.perf_counter() - t0:.1f} s (replay within {done.max_deviation_m:.1e} m) -> {done.path}"
-        )
+    Path(out).mkdir(parents=True, exist_ok=True)
+    # one rerender per folder: a second would render the same episodes beside the first
+    with exclusive(out, "rerender"):
+        for i, src in enumerate(sources, 1):
+            t0 = time.perf_counter()
+            try:
+                done = rerender_episode(src, rig, Path(out), size, own_folder=True)
+            except RerenderError as exc:
+                result.episodes.append(Rerendered(src, error=str(exc)))
+                progress(f"[{i}/{len(sources)}] {src.name}: SKIPPED: {exc}")
+                continue
+            result.episodes.append(done)
+            if done.kept:
+                progress(f"[{i}/{len(sources)}] {src.name}: re-rendered before, kept -> {done.path}")
+                continue
+            progress(
+                f"[{i}/{len(sources)}] {src.name}: {done.ticks} ticks through {rig} in "
+                f"{time.perf_counter() - t0:.1f} s (replay within {done.max_deviation_m:.1e} m) -> {done.path}"
+                + (" (rendered again: a .part of it was left by a run that was stopped)" if done.stale_part else "")
+            )
     return result

@@ -310,3 +310,43 @@ def test_rerender_refuses_bad_arguments_before_writing_anything(sim_dataset, tmp
     out = capsys.readouterr().out
     assert "re-rendered none of 1 episodes through three30: nothing written to" in out and "skipped a.mcap" in out
     assert not (tmp_path / "rr").exists()
+
+
+def test_a_rerender_stopped_or_killed_mid_episode_is_finished_by_the_same_command(sim_dataset, tmp_path):
+    """SIGTERM (a scheduler, `kill`) in the middle of an episode: before, the process died on the
+    spot and left the episode's `.part`, and the same command then failed on it with `error: [Errno
+    17] File exists`. Now a stop ends it with one line and no `.part`; the `.part` a SIGKILL leaves
+    (nothing can clean up after that) is rendered again by the next run; and a second rerender on
+    the same folder at once is refused, since it would render the same episodes beside the first."""
+    raw = sim_dataset.parent / "raw"
+    out = tmp_path / "rr"
+    cmd = [sys.executable, "-m", "services.cli", "rerender", "--raw", str(raw), "--rig", "three30", "--out", str(out)]
+    cmd += ["--size", "160"]
+    for sig in (signal.SIGTERM, signal.SIGKILL):
+        proc = subprocess.Popen(
+            cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=user_env()
+        )
+        deadline = time.monotonic() + 60
+        while not list(out.glob("*.mcap.part")):  # an episode is being rendered
+            assert time.monotonic() < deadline and proc.poll() is None, proc.communicate()
+            time.sleep(0.01)
+        if sig == signal.SIGTERM:
+            proc.send_signal(signal.SIGSTOP)  # (held in that episode while the second one starts)
+            busy = viewscale(*cmd[3:])  # the same command beside it, on the same folder
+            proc.send_signal(signal.SIGCONT)
+            assert busy.returncode == 2 and f"{out} is in use by another rerender (pid {proc.pid}" in busy.stderr
+        proc.send_signal(sig)
+        _, err = proc.communicate(timeout=60)
+        if sig == signal.SIGTERM:
+            assert proc.returncode == 130 and "Traceback" not in err, err[-2000:]
+            assert "interrupted (SIGTERM): " in err and "run the same command to render the rest" in err
+            assert not list(out.glob("*.part"))
+        else:
+            assert len(list(out.glob("*.mcap.part"))) == 1  # what a killed run leaves
+            again = viewscale(*cmd[3:])
+            assert again.returncode == 0, again.stdout[-2000:] + again.stderr[-2000:]
+            assert "left by a run that was stopped" in again.stderr
+    assert not list(out.glob("*.part")) and len(list(out.glob("*.mcap"))) == 2
+    for path in out.glob("*.mcap"):
+        ep = read_episode(path)
+        assert ep.metadata["ticks"] == len(ep.messages("/robot/state")) > 0
