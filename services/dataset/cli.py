@@ -71,6 +71,11 @@ def _build(args: argparse.Namespace) -> int:
         # a wrong --raw: no empty --out left behind (the same episode ids in two evaluations' rollouts,
         # which the build leaves out, are no clash)
         episodes = find_episodes([Path(p) for p in args.raw], unique=False)
+        # SIGTERM and SIGHUP (a scheduler, a closed terminal) stop it as Ctrl-C does: the episodes
+        # built so far stay, and the same command builds the rest (before: killed with no word)
+        from services.cli import _interrupt_on_signals
+
+        _interrupt_on_signals()
         # made before an hour of decoding, not after; taken back if the build fails before writing
         with output_dir(args.out, "--out"), exclusive(args.out, "dataset build"):
             result = build_dataset(
@@ -85,6 +90,13 @@ def _build(args: argparse.Namespace) -> int:
                 include_failed=args.include_failed,
                 include_rollouts=args.include_rollouts,
             )
+    except KeyboardInterrupt as exc:
+        print(
+            f"interrupted ({exc or 'SIGINT'}): the episodes built so far are kept in {args.out}; run the same command "
+            "to build the rest",
+            file=sys.stderr,
+        )
+        return 130
     except EpisodeError as exc:  # one episode that cannot be built stops the build: say how to go on
         many = len(episodes) > 1 and not args.skip_bad
         return _err(str(exc) + ("; --skip-bad builds the other episodes and lists this one" if many else ""))

@@ -720,3 +720,27 @@ def test_a_recording_and_its_re_renderings_are_held_out_together(tmp_path, capsy
     assert {groups.get(v, v) for v in va} == set(split_episodes(ids, 0.34, 1)[1])
     # re-renderings built alone (as the experiments' stages do) split as they always did
     assert split_episodes(list(groups), 0.34, 1, groups) == split_episodes(list(groups), 0.34, 1)
+
+
+def test_a_build_stopped_by_sigterm_says_so_and_the_same_command_finishes_it(raw_dir, tmp_path):
+    """SIGTERM (a scheduler's stop, `kill`) as Ctrl-C: one line, exit 130, and the same command
+    builds the rest (before: the process died with no word, exit 143)."""
+    import signal
+    import subprocess
+    import sys
+
+    out = tmp_path / "ds"
+    cmd = [sys.executable, "-m", "services.cli", "dataset", "build", "--raw", str(raw_dir), "--views", "F,FL,FR"]
+    cmd += ["--out", str(out), "--image-size", "640x480"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    for line in proc.stderr:
+        if line.startswith("hashing "):  # the build has begun: its first episode comes next
+            break
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130 and "Traceback" not in err, err[-2000:]
+    said = f"interrupted (SIGTERM): the episodes built so far are kept in {out}; run the same command to build the rest"
+    assert said in err
+    again = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+    assert again.returncode == 0, again.stderr[-2000:]
+    assert DatasetStore(out).summary["pseudo_demos"] == 9
