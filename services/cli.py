@@ -28,7 +28,7 @@ def _collect(args: argparse.Namespace) -> int:
     from services.core.config import ConfigError
     from services.core.rig import load_rig
     from services.core.runtime import OutputError
-    from services.session.collect import CollectError, collect
+    from services.session.collect import CollectError, collect, first_seed
     from services.session.config import EVAL_SEED_FLOOR
     from sim.config import MAX_CONTROL_HZ, MIN_CONTROL_HZ
 
@@ -46,11 +46,12 @@ def _collect(args: argparse.Namespace) -> int:
         if args.max_ticks is not None and args.max_ticks < 1:
             raise ConfigError(f"--max-ticks must be at least 1, got {args.max_ticks}")
         _check_size(args.size)
-        last_seed = args.seed + 3 * args.episodes  # failed attempts move on to the next seed
-        if args.seed < 0 or last_seed >= EVAL_SEED_FLOOR:
+        seed = first_seed(Path(args.out), args.task, args.seed)  # (after the seeds --out holds, if not asked)
+        last_seed = seed + 3 * args.episodes  # failed attempts move on to the next seed
+        if seed < 0 or last_seed >= EVAL_SEED_FLOOR:
             raise ConfigError(
                 f"--seed: collection seeds stay below {EVAL_SEED_FLOOR} (seeds from there on are "
-                f"the evaluation's), got {args.seed} (with retries up to {last_seed})"
+                f"the evaluation's), got {seed} (with retries up to {last_seed})"
             )
         extra: dict[str, list[str]] = {}
         for item in args.set:
@@ -66,7 +67,7 @@ def _collect(args: argparse.Namespace) -> int:
             args.rig,
             Path(args.out),
             config=args.config,
-            seed=args.seed,
+            seed=seed,
             size=args.size,
             realtime=not args.fast,
             control_hz=args.hz,
@@ -426,7 +427,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--episodes", type=int, default=10, help="successful episodes to record (default 10)")
     p.add_argument("--rig", default="five15", help="camera rig preset or YAML (default five15)")
     p.add_argument("--out", default="data/raw", help="directory for the episode MCAP files (default data/raw)")
-    p.add_argument("--seed", type=int, default=0, help="first seed; failed attempts move to the next (default 0)")
+    p.add_argument(
+        "--seed",
+        type=int,
+        default=None,
+        help="first seed; failed attempts move to the next (default: after the seeds of the task already in --out, "
+        "0 in a new folder: a seed is a scene, recorded again the same)",
+    )
     p.add_argument("--size", type=int, default=None, help="square frame size in px (default from config: 84)")
     p.add_argument("--hz", type=float, default=20.0, help="control rate (default 20)")
     p.add_argument("--max-ticks", type=int, default=None, help="per-episode tick limit (default per task)")

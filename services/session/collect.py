@@ -25,6 +25,7 @@ from services.core.bus import Bus, BusConfig, free_tcp_port, router
 from services.core.config import ConfigError, load_config
 from services.core.runtime import RECORDINGS, child_env, refuse_other_output, writable_dir
 from services.recorder.config import RecorderConfig
+from services.recorder.reader import EpisodeReadError, read_episode
 from services.router.credentials import USERS_FILE, password_path, write_credentials
 from services.session.config import SessionConfig
 from services.session.session import Session, SessionError, SessionResult, summary
@@ -192,6 +193,42 @@ class LocalStack:
         if self._secrets is not None:
             self._secrets.cleanup()
             self._secrets = None
+
+
+def recorded_seeds(out: Path, task: str) -> list[int]:
+    """The seeds of the ``task`` episodes a collection recorded in ``out`` (its metadata, not its
+    name; re-renderings of them are left out: the same scenes through other cameras)."""
+    seeds = []
+    for path in sorted(out.glob("*.mcap")) if out.is_dir() else []:
+        try:
+            md = read_episode(path, topics=()).metadata
+        except EpisodeReadError:  # (a file the dataset build will name; not a seed of ours)
+            continue
+        if md.get("task") == task and md.get("seed") is not None and not md.get("rerendered_from"):
+            seeds.append(int(md["seed"]))
+    return sorted(seeds)
+
+
+def first_seed(out: Path, task: str, asked: int | None, progress=print) -> int:
+    """Where a collection into ``out`` starts. A seed is a scene and the scripted expert is
+    deterministic, so the seeds ``out`` holds already would record the same episodes again: with
+    no seed asked for, it starts after them (0 in a new folder); a seed asked for is taken, and
+    what it may repeat is said."""
+    seeds = recorded_seeds(out, task)
+    if asked is None:
+        if not seeds:
+            return 0
+        progress(
+            f"{out} holds {len(seeds)} {task} episodes (seeds {seeds[0]}..{seeds[-1]}): "
+            f"continuing from seed {seeds[-1] + 1}"
+        )
+        return seeds[-1] + 1
+    if seeds and asked <= seeds[-1]:
+        progress(
+            f"note: {out} holds {task} episodes of seeds {seeds[0]}..{seeds[-1]}: from --seed {asked}, the seeds "
+            "recorded there record the same scenes again (leave --seed out to continue after them)"
+        )
+    return asked
 
 
 def collect(

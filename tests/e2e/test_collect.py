@@ -303,3 +303,26 @@ def test_a_service_that_exits_mid_session_is_named_with_its_last_log_lines(tmp_p
     assert "kept as failed" in out  # the cut episode, as before
     gone, alive = psutil.wait_procs(children, timeout=30)
     assert not alive and not list(tmp_path.glob("*.part"))
+
+
+def test_collecting_again_into_a_folder_continues_after_the_seeds_it_holds(recorded, tmp_path):
+    """A seed is a scene, and the scripted expert is deterministic: before, a second `collect` into
+    the same folder started at seed 0 again and recorded the same episodes a second time (the
+    dataset then held duplicates, and a held-out episode could be a training episode's twin)."""
+    import shutil
+
+    first, _ = recorded  # lift seeds 0 and 1
+    out = tmp_path / "raw"
+    out.mkdir()
+    for f in first.glob("*.mcap"):
+        shutil.copy(f, out)
+    proc = run_collect(out, "--task", "lift", "--episodes", "1", "--rig", "five15", "--fast")
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
+    assert f"{out} holds 2 lift episodes (seeds 0..1): continuing from seed 2" in proc.stdout
+    assert "[1/1] lift seed 2: success" in proc.stdout
+    seeds = sorted(read_episode(f, topics=()).metadata["seed"] for f in out.glob("*.mcap"))
+    assert seeds == [0, 1, 2]
+    # a seed asked for is taken, and what it repeats is said
+    again = run_collect(out, "--task", "lift", "--episodes", "1", "--rig", "five15", "--fast", "--seed", "1")
+    assert again.returncode == 0 and "[1/1] lift seed 1: success" in again.stdout
+    assert f"note: {out} holds lift episodes of seeds 0..2: from --seed 1, the seeds recorded there" in again.stdout
