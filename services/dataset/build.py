@@ -163,6 +163,8 @@ def find_episodes(raw: Path | list[Path], unique: bool = True) -> list[Path]:
             found.append(p)
         else:
             raise DatasetError(f"raw data path {p} does not exist")
+    seen: set[Path] = set()  # one file reached twice (a folder and a file in it, overlapping folders): once
+    found = [q for q in found if not (q.resolve() in seen or seen.add(q.resolve()))]
     if not found:
         unfinished = unfinished_episodes(paths)
         raise DatasetError(

@@ -744,3 +744,13 @@ def test_a_build_stopped_by_sigterm_says_so_and_the_same_command_finishes_it(raw
     again = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
     assert again.returncode == 0, again.stderr[-2000:]
     assert DatasetStore(out).summary["pseudo_demos"] == 9
+
+
+def test_an_episode_reached_twice_through_the_raw_paths_is_built_once(raw_dir, tmp_path, capsys):
+    """A folder and a file in it, or a folder and a folder inside it: each file once (before:
+    `error: two episodes named ep000: .../ep000.mcap and .../ep000.mcap`, the same file)."""
+    first = sorted(raw_dir.glob("*.mcap"))[0]
+    out = tmp_path / "ds"
+    args = ["dataset", "build", "--raw", str(raw_dir), str(first), str(raw_dir) + "/", "--views", "F"]
+    assert viewscale([*args, "--out", str(out), "--image-size", "32x24"]) == 0, capsys.readouterr().err
+    assert DatasetStore(out).summary["episodes"] == 3
