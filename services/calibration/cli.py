@@ -224,12 +224,17 @@ def _capture(args: argparse.Namespace) -> int:
         return _err(f"--every must be 0 or more seconds, got {args.every:g}")
     try:
         board = _board(args)
+        # SIGTERM and SIGHUP (a closed terminal) stop it as Ctrl-C does, between two shots' files,
+        # never in the middle of writing one (before: killed on the spot)
+        from services.cli import _interrupt_on_signals
+
+        _interrupt_on_signals()
         with Capture(args.config, Path(args.images), args.kind, board, overrides) as cap:
             shots = run_capture(cap, args.count, args.every, say=lambda m: print(m, flush=True))
     except (CalibrationError, ConfigError, ConnectionError) as exc:  # (a router not there)
         return _err(str(exc))
-    except KeyboardInterrupt:
-        print("interrupted: the shots taken are kept", file=sys.stderr)
+    except KeyboardInterrupt as exc:
+        print(f"interrupted ({exc or 'SIGINT'}): the shots taken are kept", file=sys.stderr)
         return 130
     except Exception as exc:  # noqa: BLE001  (a driver that cannot open: its reason, not a traceback)
         return _err(f"cannot open the {args.kind} capture: {type(exc).__name__}: {exc}")

@@ -5,6 +5,7 @@ and poses it writes are what `calibrate rig` reads."""
 
 from __future__ import annotations
 
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -134,3 +135,22 @@ def test_a_hand_eye_shot_while_the_arm_moves_is_refused():
     assert _moved(at(0.45), at(0.452)).startswith("the arm moved 2.0 mm and 0.00 degrees during the shot")
     turned = (0.0, np.cos(np.radians(0.25)), np.sin(np.radians(0.25)), 0.0)  # 0.5 degrees about z
     assert "0.50 degrees" in _moved(at(0.45), at(0.45, turned))
+
+
+def test_a_capture_stopped_by_sigterm_keeps_its_shots_whole(session, tmp_path):
+    """SIGTERM (a closed terminal's SIGHUP alike) as Ctrl-C: one line, exit 130, and every shot
+    saved is a whole image (before: killed on the spot, possibly in the middle of writing one)."""
+    images = tmp_path / "calib"
+    cmd = [sys.executable, "-m", "services.cli", "calibrate", "capture", "--config", str(session)]
+    cmd += ["--images", str(images), "--kind", "intrinsics", "--count", "100", "--every", "0.2"]
+    proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    shots = 0
+    for line in proc.stdout:
+        shots += line.startswith("[")  # [000] F 24/24 corners -> .../000.png
+        if shots == 2:
+            break
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130 and err.strip() == "interrupted (SIGTERM): the shots taken are kept", err[-2000:]
+    saved = sorted((images / "F" / "intrinsics").iterdir())
+    assert len(saved) >= 2 and all(cv2.imread(str(p)) is not None for p in saved)
