@@ -10,7 +10,8 @@
 time from the measured latency, drops the actions that went stale while a request was in flight,
 and never blocks the control loop: when no action is queued for a tick it answers a hold (zero
 motion, the last gripper target) and counts an underrun. In lockstep (``blocking=True``) there is
-no wall clock to race, so it waits for the chunk instead.
+no wall clock to race, so it waits for the chunk instead, and for a server that is down or not
+serving yet (restarting, its model loading), within the client's deadline.
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ from services.policy.transport import bad_target, keepalive_channel_options, mes
 Image = bytes | np.ndarray  # JPEG bytes, or (H, W, 3) uint8 RGB
 
 POLICY_SERVICE = policy_pb2.DESCRIPTOR.services_by_name["Policy"].full_name  # its name in grpc.health.v1
+RETRY_S = 0.2  # lockstep: how often a server that is not serving is asked again
 
 
 class PolicyError(RuntimeError):
@@ -225,6 +227,16 @@ class PolicyClient:
             time.sleep(delay)
             delay = min(2 * delay, 1.0)
 
+    def serving(self) -> bool:
+        """Whether the server's health says SERVING now (False: down, starting, or its model still
+        loading; a server without the health entry counts as serving)."""
+        req = health_pb2.HealthCheckRequest(service=POLICY_SERVICE)
+        try:
+            status = health_pb2_grpc.HealthStub(self.channel).Check(req, timeout=2.0).status
+        except grpc.RpcError as exc:
+            return exc.code() in (grpc.StatusCode.UNIMPLEMENTED, grpc.StatusCode.NOT_FOUND)
+        return status == health_pb2.HealthCheckResponse.SERVING
+
     def _check_server(self, reply: policy_pb2.ActionReply) -> None:
         """Refuse a chunk the held PolicyInfo does not describe.
 
@@ -296,10 +308,25 @@ class PolicyClient:
             )
         return req
 
-    def call(self, req: policy_pb2.ActionRequest, timeout_s: float | None = None) -> ActionChunk:
+    def renumbered(self, req: policy_pb2.ActionRequest) -> policy_pb2.ActionRequest:
+        """``req`` again as the session's next request (a new ``seq``): to ask anew after a refusal."""
+        again = policy_pb2.ActionRequest()
+        again.CopyFrom(req)
+        with self._lock:
+            self._seq += 1
+            again.seq = self._seq
+        return again
+
+    def call(
+        self, req: policy_pb2.ActionRequest, timeout_s: float | None = None, wait_for_ready: bool = False
+    ) -> ActionChunk:
+        """GetAction. ``wait_for_ready``: a server that cannot be reached is waited for, up to the
+        deadline, instead of failing at once (gRPC's own queueing of the call)."""
         t0 = time.perf_counter()
         try:
-            reply = self.stub.GetAction(req, timeout=timeout_s or self.timeout_s, metadata=self._metadata)
+            reply = self.stub.GetAction(
+                req, timeout=timeout_s or self.timeout_s, metadata=self._metadata, wait_for_ready=wait_for_ready
+            )
         except grpc.RpcError as exc:
             raise PolicyError(f"GetAction seq {req.seq}: {exc.code().name}: {exc.details()}", exc.code()) from None
         self._check_server(reply)
@@ -432,10 +459,25 @@ class ChunkRunner:
         box: list = []
 
         def call() -> None:
-            try:
-                box.append(self.client.call(req))
-            except PolicyError as exc:
-                box.append(exc)
+            # In lockstep the sim waits for this chunk, so a server that is down or restarting (not
+            # serving yet: its health says so) is waited for, within the client's deadline, rather
+            # than the arm held tick after tick and the episode lost to it. A serving server that
+            # refuses (no worker left) is not: that is its answer. In real time a late chunk is
+            # worthless: one try.
+            deadline = time.monotonic() + self.client.timeout_s
+            attempt = req
+            while True:
+                try:
+                    left = deadline - time.monotonic()  # (every try within the one deadline)
+                    box.append(self.client.call(attempt, timeout_s=left, wait_for_ready=self.blocking))
+                    return
+                except PolicyError as exc:
+                    starting = self.blocking and exc.code == grpc.StatusCode.UNAVAILABLE
+                    if not (starting and deadline - time.monotonic() > RETRY_S and not self.client.serving()):
+                        box.append(exc)
+                        return
+                time.sleep(RETRY_S)
+                attempt = self.client.renumbered(req)
 
         thread = threading.Thread(target=call, name="policy-request", daemon=True)
         self._pending = (tick, thread, box)
