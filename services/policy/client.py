@@ -406,7 +406,10 @@ class ChunkRunner:
         seed: int | None = None,
         margin_ticks: int = 1,
         on_error=None,
+        cancel: threading.Event | None = None,
     ):
+        """``cancel``: once set, a blocking ``act`` waits no longer for its chunk (a hold), nor for
+        a server that is down: the caller is stopping."""
         info = client.info
         most = int(info.pred_horizon) - int(info.obs_horizon) + 1  # a chunk's actions from start_index on
         if control_hz is not None and not control_hz > 0:
@@ -426,6 +429,7 @@ class ChunkRunner:
         self.seed = seed  # a base seed: request i of the episode uses seed + i (reproducible episodes)
         self.margin_ticks = margin_ticks
         self.on_error = on_error
+        self.cancel = cancel or threading.Event()
         self.stats = RunnerStats()
         self.last_chunk: ActionChunk | None = None
         self.reset()
@@ -476,7 +480,10 @@ class ChunkRunner:
                     if not (starting and deadline - time.monotonic() > RETRY_S and not self.client.serving()):
                         box.append(exc)
                         return
-                time.sleep(RETRY_S)
+                    failed = exc
+                if self.cancel.wait(RETRY_S):  # (stopping: the last refusal is the answer)
+                    box.append(failed)
+                    return
                 attempt = self.client.renumbered(req)
 
         thread = threading.Thread(target=call, name="policy-request", daemon=True)
@@ -488,8 +495,8 @@ class ChunkRunner:
         if self._pending is None:
             return
         obs_tick, thread, box = self._pending
-        if wait:
-            thread.join()
+        while wait and thread.is_alive() and not self.cancel.is_set():
+            thread.join(0.1)
         if thread.is_alive():
             return
         self._pending = None

@@ -51,5 +51,9 @@ class TeleopDriver(ABC):
         """The service's open bus, before the first tick (default: unused). Drivers with episode keys
         send the recorder's control requests on it."""
 
+    def interrupt(self) -> None:
+        """The service is stopping: an ``act`` waiting (for a policy's chunk) returns now (default:
+        nothing waits)."""
+
     def close(self) -> None:
         """Release the device (default: nothing to release)."""

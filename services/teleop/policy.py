@@ -42,6 +42,7 @@ log = logging.getLogger(__name__)
 class PolicyTeleop(TeleopDriver):
     def __init__(self, cfg: PolicyTeleopConfig):
         self.cfg = cfg
+        self._stopping = threading.Event()  # the service is stopping: a lockstep act waits no longer
         try:
             tls_ca = Path(cfg.tls_ca).read_bytes() if cfg.tls_ca else None
         except OSError as exc:
@@ -208,7 +209,11 @@ class PolicyTeleop(TeleopDriver):
             gamma=self.cfg.gamma,
             seed=seed,
             on_error=self._on_error,
+            cancel=self._stopping,
         )
+
+    def interrupt(self) -> None:
+        self._stopping.set()
 
     def _on_error(self, exc: PolicyError) -> None:
         if self.first_error is None:

@@ -147,6 +147,11 @@ class TeleopService:
             )
 
     def run(self, stop: threading.Event) -> None:
+        def interrupt() -> None:  # (a lockstep policy waits for its chunk: not past the stop)
+            stop.wait()
+            self.driver.interrupt()
+
+        threading.Thread(target=interrupt, name="teleop-interrupt", daemon=True).start()
         while not stop.is_set():
             item = self._next(stop)
             if item is None:

@@ -1135,5 +1135,13 @@ def test_a_lockstep_runner_waits_for_a_server_that_restarts_instead_of_holding_t
                 _, fresh = runner.act(tick, *ticks[tick])
                 assert fresh, (tick, runner.stats)
             assert runner.stats.failed == 0 and runner.stats.underruns == 0
+            # and while it waits for a server that is down, its caller stopping (cancel) ends the wait
+            stop(proc)
+            for tick in range(runner.n_action_steps + 1, 2 * runner.n_action_steps):
+                assert runner.act(tick, *ticks[tick % len(ticks)])[1]
+            threading.Timer(1.0, runner.cancel.set).start()
+            t0 = time.monotonic()
+            _, fresh = runner.act(2 * runner.n_action_steps, *ticks[0])
+            assert not fresh and time.monotonic() - t0 < 5.0  # a hold, at once (not at the 120 s deadline)
     finally:
         stop(proc)
