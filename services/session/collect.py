@@ -27,7 +27,7 @@ from services.core.runtime import RECORDINGS, child_env, refuse_other_output, wr
 from services.recorder.config import RecorderConfig
 from services.recorder.reader import EpisodeReadError, read_episode
 from services.router.credentials import USERS_FILE, password_path, write_credentials
-from services.session.config import SessionConfig
+from services.session.config import EVAL_SEED_FLOOR, SessionConfig
 from services.session.session import Session, SessionError, SessionResult, summary
 from services.teleop.config import TeleopConfig
 from sim.config import SimConfig
@@ -197,7 +197,8 @@ class LocalStack:
 
 def recorded_seeds(out: Path, task: str) -> list[int]:
     """The seeds of the ``task`` episodes a collection recorded in ``out`` (its metadata, not its
-    name; re-renderings of them are left out: the same scenes through other cameras)."""
+    name; re-renderings of them are left out, the same scenes through other cameras, and an
+    evaluation's rollouts, whose seeds are the evaluation's)."""
     seeds = []
     for path in sorted(out.glob("*.mcap")) if out.is_dir() else []:
         try:
@@ -205,7 +206,8 @@ def recorded_seeds(out: Path, task: str) -> list[int]:
         except EpisodeReadError:  # (a file the dataset build will name; not a seed of ours)
             continue
         if md.get("task") == task and md.get("seed") is not None and not md.get("rerendered_from"):
-            seeds.append(int(md["seed"]))
+            if int(md["seed"]) < EVAL_SEED_FLOOR:  # (an evaluation's rollouts: not collection seeds)
+                seeds.append(int(md["seed"]))
     return sorted(seeds)
 
 

@@ -754,3 +754,19 @@ def test_an_episode_reached_twice_through_the_raw_paths_is_built_once(raw_dir, t
     args = ["dataset", "build", "--raw", str(raw_dir), str(first), str(raw_dir) + "/", "--views", "F"]
     assert viewscale([*args, "--out", str(out), "--image-size", "32x24"]) == 0, capsys.readouterr().err
     assert DatasetStore(out).summary["episodes"] == 3
+
+
+def test_the_seeds_a_collection_continues_after_are_its_own_tasks_collected_ones(tmp_path):
+    """`viewscale collect` into a folder continues after its seeds: those of its task, recorded by a
+    collection, not an evaluation's rollouts (seeds from 100000 on) nor re-renderings."""
+    from services.session.collect import first_seed, recorded_seeds
+
+    write_episode(tmp_path, "lift-a", 5, seed=3)
+    write_episode(tmp_path, "lift-eval", 5, seed=100004)
+    write_episode(tmp_path, "lift-a-three30", 5, seed=7, rerendered_from=str(tmp_path / "elsewhere.mcap"))
+    write_episode(tmp_path, "can-a", 5, seed=9, task="can")
+    assert recorded_seeds(tmp_path, "lift") == [3] and recorded_seeds(tmp_path, "can") == [9]
+    said: list[str] = []
+    assert first_seed(tmp_path, "lift", None, progress=said.append) == 4
+    assert said == [f"{tmp_path} holds 1 lift episodes (seeds 3..3): continuing from seed 4"]
+    assert first_seed(tmp_path, "square", None, progress=said.append) == 0 and len(said) == 1
