@@ -132,6 +132,9 @@ class PolicyClient:
         self.session_id = session_id
         self.tls = tls_ca is not None
         self.timeout_s = timeout_s
+        # a lockstep runner waited a whole deadline for this server to serve, in vain: its next
+        # requests do not wait, until one is answered (ChunkRunner)
+        self.waited_out = False
         self.jpeg_quality = jpeg_quality  # raw numpy frames are sent as JPEG at this quality (0: raw RGB)
         self._metadata = (("authorization", f"Bearer {token}"),) if token else None
         options = [
@@ -468,16 +471,22 @@ class ChunkRunner:
             # than the arm held tick after tick and the episode lost to it. A serving server that
             # refuses (no worker left) is not: that is its answer. In real time a late chunk is
             # worthless: one try.
+            # A wait that ran out is not waited again (a server gone for good would cost every
+            # tick the deadline) until the server answers again.
+            patient = self.blocking and not self.client.waited_out
             deadline = time.monotonic() + self.client.timeout_s
             attempt = req
             while True:
                 try:
                     left = deadline - time.monotonic()  # (every try within the one deadline)
-                    box.append(self.client.call(attempt, timeout_s=left, wait_for_ready=self.blocking))
+                    box.append(self.client.call(attempt, timeout_s=left, wait_for_ready=patient))
+                    self.client.waited_out = False
                     return
                 except PolicyError as exc:
-                    starting = self.blocking and exc.code == grpc.StatusCode.UNAVAILABLE
-                    if not (starting and deadline - time.monotonic() > RETRY_S and not self.client.serving()):
+                    down = exc.code in (grpc.StatusCode.UNAVAILABLE, grpc.StatusCode.DEADLINE_EXCEEDED)
+                    waiting = patient and down and not self.client.serving()
+                    if not (waiting and deadline - time.monotonic() > RETRY_S):
+                        self.client.waited_out = self.client.waited_out or waiting
                         box.append(exc)
                         return
                     failed = exc

@@ -1145,3 +1145,41 @@ def test_a_lockstep_runner_waits_for_a_server_that_restarts_instead_of_holding_t
             assert not fresh and time.monotonic() - t0 < 5.0  # a hold, at once (not at the 120 s deadline)
     finally:
         stop(proc)
+
+
+def test_a_lockstep_runner_waits_once_for_a_server_gone_for_good_then_no_more(checkpoint, observations):
+    """A server that does not come back within the deadline: that one request waited the deadline
+    out, the next ones fail at once (a hold each), until the server answers again. Otherwise an
+    evaluation whose server died would cost every tick the whole deadline."""
+    from services.policy.client import ChunkRunner
+
+    port = free_tcp_port()
+    args = ["serve", "--checkpoint", str(checkpoint), "--listen", f"127.0.0.1:{port}", "--views", "F", "--in-process"]
+    proc = start(args, "policy")[0]
+    ticks = [({"F": frames["F"][-1]}, states[-1]) for frames, states in observations]
+    try:
+        with PolicyClient(f"127.0.0.1:{port}", session_id="lockstep", timeout_s=2) as client:
+            runner = ChunkRunner(client, blocking=True, views=["F"])
+            n = runner.n_action_steps
+            for tick in range(n):
+                assert runner.act(tick, *ticks[tick % len(ticks)])[1]
+            stop(proc)
+
+            def timed(tick: int) -> tuple[bool, float]:
+                t0 = time.monotonic()
+                fresh = runner.act(tick, *ticks[tick % len(ticks)])[1]
+                return fresh, time.monotonic() - t0
+
+            fresh, waited = timed(n)
+            assert not fresh and 1.5 < waited < 10 and client.waited_out  # the deadline, waited out
+            fresh, waited = timed(n + 1)
+            assert not fresh and waited < 1.0  # at once
+            proc = start(args, "policy")[0]
+            tick, deadline = n + 2, time.monotonic() + 60  # (holds until gRPC's channel reconnects)
+            while not timed(tick)[0]:
+                assert time.monotonic() < deadline, runner.stats
+                tick += 1
+                time.sleep(0.2)
+            assert not client.waited_out  # answered again: the next outage is waited for again
+    finally:
+        stop(proc)
