@@ -18,7 +18,6 @@ import importlib
 import logging
 import math
 import os
-import signal
 import sys
 from pathlib import Path
 
@@ -27,7 +26,7 @@ def _collect(args: argparse.Namespace) -> int:
     os.environ.setdefault("MUJOCO_GL", "egl")
     from services.core.config import ConfigError
     from services.core.rig import load_rig
-    from services.core.runtime import OutputError
+    from services.core.runtime import OutputError, interrupt_on_signals
     from services.session.collect import CollectError, collect, first_seed
     from services.session.config import EVAL_SEED_FLOOR
     from sim.config import MAX_CONTROL_HZ, MIN_CONTROL_HZ
@@ -60,7 +59,7 @@ def _collect(args: argparse.Namespace) -> int:
                 raise ConfigError(f"--set {item!r} must name a service: sim.width=224, recorder.queue_size=256")
             extra.setdefault(service, []).append(rest)
         # the episode in progress is closed and kept (flagged) and every service is stopped
-        _interrupt_on_signals()
+        interrupt_on_signals()
         result = collect(
             args.task,
             args.episodes,
@@ -96,6 +95,7 @@ def _interrupted(exc: KeyboardInterrupt, folder: Path, what: str) -> int:
 def _eval(args: argparse.Namespace) -> int:
     os.environ.setdefault("MUJOCO_GL", "egl")
     from services.core.config import ConfigError
+    from services.core.runtime import interrupt_on_signals
     from services.policy.checkpoint import CheckpointError
     from services.session.collect import CollectError
     from services.session.evaluate import EvalError, EvalSpec, evaluate
@@ -127,7 +127,7 @@ def _eval(args: argparse.Namespace) -> int:
             video=args.video,
             video_camera=args.video_camera,
         )
-        _interrupt_on_signals()
+        interrupt_on_signals()
         result = evaluate(spec, Path(args.out))
     except (EvalError, CollectError, ConfigError, CheckpointError) as exc:
         print(f"error: {exc}", file=sys.stderr)
@@ -177,7 +177,7 @@ def _check_size(size: int | None) -> None:
 def _rerender(args: argparse.Namespace) -> int:
     os.environ.setdefault("MUJOCO_GL", "egl")
     from services.core.config import ConfigError
-    from services.core.runtime import RECORDINGS, OutputError, output_dir, refuse_other_output
+    from services.core.runtime import RECORDINGS, OutputError, interrupt_on_signals, output_dir, refuse_other_output
     from services.dataset.build import find_episodes
     from services.dataset.store import DatasetError
     from sim.rerender import rerender
@@ -200,7 +200,7 @@ def _rerender(args: argparse.Namespace) -> int:
         refuse_other_output(out, "--out", RECORDINGS)
         # Ctrl-C, SIGTERM, SIGHUP: the episode being rendered is dropped (its .part removed), those
         # done are kept, and the same command renders the rest
-        _interrupt_on_signals()
+        interrupt_on_signals()
         with output_dir(out, "--out", keep_empty=False):  # taken back if nothing was written in it
             result = rerender(
                 episodes,  # (the files found: the folders are not walked again)
@@ -239,7 +239,7 @@ def _rerender(args: argparse.Namespace) -> int:
 def _experiment(args: argparse.Namespace) -> int:
     os.environ.setdefault("MUJOCO_GL", "egl")
     from services.core.config import ConfigError
-    from services.core.runtime import OutputError, writable_dir
+    from services.core.runtime import OutputError, interrupt_on_signals, writable_dir
     from services.experiment.runner import ExperimentError, Runner
 
     try:
@@ -256,7 +256,7 @@ def _experiment(args: argparse.Namespace) -> int:
             args.question, args.task, args.scale, Path(args.root), progress=say, only=args.only, seeds=seeds
         )
         writable_dir(args.root, "--root")  # (its cache and the tables go there)
-        _interrupt_on_signals()
+        interrupt_on_signals()
         runner.run(table_only=args.table_only)
     except (ConfigError, ExperimentError, OutputError) as exc:
         print(f"error: {exc}", file=sys.stderr)
@@ -268,21 +268,6 @@ def _experiment(args: argparse.Namespace) -> int:
         )
         return 130
     return 0
-
-
-def _interrupt(signum, _frame):
-    raise KeyboardInterrupt(signal.Signals(signum).name)
-
-
-def _interrupt_on_signals() -> None:
-    """SIGTERM, SIGHUP and SIGINT (even where a parent shell ignores it) unwind like Ctrl-C; and a
-    Ctrl-C that came while the command started, and that a library swallowed, unwinds now."""
-    from services.core.runtime import signalled_while_starting
-
-    for sig in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):
-        signal.signal(sig, _interrupt)
-    if name := signalled_while_starting():
-        raise KeyboardInterrupt(name)
 
 
 def _episode(args: argparse.Namespace) -> int:

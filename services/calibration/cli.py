@@ -42,6 +42,7 @@ from services.calibration.extrinsics import from_board_pose, hand_eye, pose_matr
 from services.calibration.rigfile import CameraCalibration, check_errors, write_rig
 from services.core.config import ConfigError
 from services.core.rig import CALIBRATION_MAX_ERROR_PX
+from services.core.runtime import interrupt_on_signals
 
 
 def _read_pose_file(path: str) -> dict:
@@ -226,9 +227,7 @@ def _capture(args: argparse.Namespace) -> int:
         board = _board(args)
         # SIGTERM and SIGHUP (a closed terminal) stop it as Ctrl-C does, between two shots' files,
         # never in the middle of writing one (before: killed on the spot)
-        from services.cli import _interrupt_on_signals
-
-        _interrupt_on_signals()
+        interrupt_on_signals()
         with Capture(args.config, Path(args.images), args.kind, board, overrides) as cap:
             shots = run_capture(cap, args.count, args.every, say=lambda m: print(m, flush=True))
     except (CalibrationError, ConfigError, ConnectionError) as exc:  # (a router not there)

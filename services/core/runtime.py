@@ -63,6 +63,21 @@ def signalled_while_starting() -> str | None:
     return _SIGNALLED_WHILE_STARTING[0] if _SIGNALLED_WHILE_STARTING else None
 
 
+def raise_interrupt(signum, _frame):
+    """A signal handler that unwinds like Ctrl-C, naming the signal (``KeyboardInterrupt('SIGTERM')``)."""
+    raise KeyboardInterrupt(signal.Signals(signum).name)
+
+
+def interrupt_on_signals() -> None:
+    """For a command that stops by unwinding (it keeps what it finished and says so): SIGTERM,
+    SIGHUP and SIGINT (even where a parent shell ignores it) unwind like Ctrl-C; and a Ctrl-C that
+    came while the command started, and that a library swallowed, unwinds now."""
+    for sig in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):
+        signal.signal(sig, raise_interrupt)
+    if name := signalled_while_starting():
+        raise KeyboardInterrupt(name)
+
+
 def set_from_signal_handler(event: threading.Event, first: Callable[[], None] | None = None) -> None:
     """Call ``first`` and set ``event`` on a new thread: what a signal handler must do instead
     of ``event.set()``. Python runs a handler in the main thread between two bytecodes of whatever

@@ -17,7 +17,7 @@ from pathlib import Path
 
 from services.core.action_spaces import SPACES, STATE_FRAMES
 from services.core.rig import CALIBRATION_MAX_AGE_DAYS
-from services.core.runtime import OutputError, exclusive, output_dir
+from services.core.runtime import OutputError, exclusive, interrupt_on_signals, output_dir
 from services.dataset.build import BuildParams, build_dataset, find_episodes
 from services.dataset.episodes import EpisodeError
 from services.dataset.store import CONTACT_SHEET, DatasetError, DatasetStore
@@ -73,9 +73,7 @@ def _build(args: argparse.Namespace) -> int:
         episodes = find_episodes([Path(p) for p in args.raw], unique=False)
         # SIGTERM and SIGHUP (a scheduler, a closed terminal) stop it as Ctrl-C does: the episodes
         # built so far stay, and the same command builds the rest (before: killed with no word)
-        from services.cli import _interrupt_on_signals
-
-        _interrupt_on_signals()
+        interrupt_on_signals()
         # made before an hour of decoding, not after; taken back if the build fails before writing
         with output_dir(args.out, "--out"), exclusive(args.out, "dataset build"):
             result = build_dataset(

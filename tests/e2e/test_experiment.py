@@ -133,10 +133,10 @@ def test_an_interrupted_run_lets_its_training_stage_save_its_step(sim_dataset, t
     code = (
         "import signal, sys\n"
         "from pathlib import Path\n"
-        "from services.cli import _interrupt\n"
+        "from services.core.runtime import raise_interrupt\n"
         "from services.experiment.runner import viewscale\n"
         "for s in (signal.SIGINT, signal.SIGTERM):\n"
-        "    signal.signal(s, _interrupt)\n"
+        "    signal.signal(s, raise_interrupt)\n"
         "try:\n"
         f"    viewscale({args!r}, Path({str(log)!r}))\n"
         "except KeyboardInterrupt as exc:\n"
