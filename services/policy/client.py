@@ -207,20 +207,24 @@ class PolicyClient:
                     last = f"{exc.code().name}: {exc.details()}"
         return last + tls_hint(last, self.tls)
 
-    def _wait_serving(self, deadline: float, timeout_s: float) -> None:
-        health = health_pb2_grpc.HealthStub(self.channel)
+    def _health(self, timeout_s: float) -> tuple[bool, str]:
+        """(serving, what the health check said): one ``grpc.health.v1`` check of the policy
+        service. A server (or proxy) without the health entry counts as serving: GetAction will tell."""
         req = health_pb2.HealthCheckRequest(service=POLICY_SERVICE)
+        try:
+            status = health_pb2_grpc.HealthStub(self.channel).Check(req, timeout=timeout_s).status
+        except grpc.RpcError as exc:
+            said = f"{exc.code().name}: {exc.details()}"
+            return exc.code() in (grpc.StatusCode.UNIMPLEMENTED, grpc.StatusCode.NOT_FOUND), said
+        said = health_pb2.HealthCheckResponse.ServingStatus.Name(status)
+        return status == health_pb2.HealthCheckResponse.SERVING, said
+
+    def _wait_serving(self, deadline: float, timeout_s: float) -> None:
         delay = 0.1
         while True:
-            try:
-                status = health.Check(req, timeout=min(5.0, timeout_s)).status
-                if status == health_pb2.HealthCheckResponse.SERVING:
-                    return
-                last = health_pb2.HealthCheckResponse.ServingStatus.Name(status)
-            except grpc.RpcError as exc:
-                if exc.code() in (grpc.StatusCode.UNIMPLEMENTED, grpc.StatusCode.NOT_FOUND):
-                    return  # a server (or proxy) without this health entry: GetAction will tell
-                last = f"{exc.code().name}: {exc.details()}"
+            serving, last = self._health(min(5.0, timeout_s))
+            if serving:
+                return
             if time.monotonic() + delay > deadline:
                 raise PolicyError(
                     f"the policy server at {self.address} answers but is not serving after {timeout_s:.0f}s "
@@ -232,13 +236,8 @@ class PolicyClient:
 
     def serving(self) -> bool:
         """Whether the server's health says SERVING now (False: down, starting, or its model still
-        loading; a server without the health entry counts as serving)."""
-        req = health_pb2.HealthCheckRequest(service=POLICY_SERVICE)
-        try:
-            status = health_pb2_grpc.HealthStub(self.channel).Check(req, timeout=2.0).status
-        except grpc.RpcError as exc:
-            return exc.code() in (grpc.StatusCode.UNIMPLEMENTED, grpc.StatusCode.NOT_FOUND)
-        return status == health_pb2.HealthCheckResponse.SERVING
+        loading)."""
+        return self._health(2.0)[0]
 
     def _check_server(self, reply: policy_pb2.ActionReply) -> None:
         """Refuse a chunk the held PolicyInfo does not describe.
